@@ -1,0 +1,201 @@
+"""Typed run configuration: dataclass defaults, overridden by a YAML file, then by `key=value`.
+
+Defaults are the reference MAT hyper-parameters for SMAC (shared/reference/README.md) except
+where a field's docstring says otherwise. OmegaConf merges and type-checks the layers; the result
+is converted back to these frozen dataclasses, so a typo or a wrong type fails before any tracing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from cmat.errors import CmatError
+
+CONSENSUS_SOURCES = ("mixture", "last")
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """CMAT network sizes (paper Sec. Network Architecture)."""
+
+    n_embd: int = 64
+    """Hidden size d of every block."""
+    n_head: int = 1
+    """Attention heads; must divide n_embd."""
+    n_block: int = 1
+    """Transformer blocks in the encoder and in the decoder."""
+    compressor_heads: int = 4
+    """h, the number of soft mixtures each compressor forms (eq. critic_compressor); the paper
+    does not give it."""
+    consensus_iterations: int | None = None
+    """m, decoder iterations (eq. decoder). None means m = number of agents (the paper's default);
+    0 uses e0 alone."""
+    consensus_source: str = "mixture"
+    """'mixture': c = Actor-Compressor(e0..em) (eq. actor_compressor, the default);
+    'last': c = e_m (the paper's ablation)."""
+    init_gain: float = 0.01
+    """Orthogonal-init gain of the action and value output layers."""
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """Single-agent PPO over the joint action (paper eq. cmat, eq. ratio)."""
+
+    lr: float = 5e-4
+    adam_eps: float = 1e-5
+    epochs: int = 15
+    num_minibatches: int = 1
+    clip_eps: float = 0.05
+    """Clip range of the joint ratio and of the clipped value loss."""
+    ent_coef: float = 0.01
+    value_coef: float = 1.0
+    max_grad_norm: float = 10.0
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    target_tau: float = 0.1
+    """Soft-update rate of the target critic phi- <- tau*phi + (1-tau)*phi- after each update
+    (Algorithm 1). The paper gives no value; tau=1 is standard PPO."""
+    value_norm: bool = True
+    """Running mean/std normalisation of value targets (MAT's ValueNorm)."""
+    huber_loss: bool = True
+    huber_delta: float = 10.0
+    clipped_value_loss: bool = True
+    normalize_advantages: bool = True
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run: environment, budget, seeds, network and PPO settings."""
+
+    env: str = "matrix:fig1"
+    """Environment id: matrix:NAME, smax:SCENARIO or mpe:NAME."""
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
+    algo: str = "cmat"
+    total_steps: int = 200_000
+    """Environment steps per seed (one step = one joint action in one environment)."""
+    num_envs: int = 32
+    """Parallel environments per seed (the reference's rollout threads)."""
+    rollout_length: int = 100
+    """Steps per environment between updates (the reference's episode length)."""
+    seeds: int = 1
+    """Independent seeds trained at once by vmap."""
+    seed: int = 0
+    """Base seed; seed s of a run uses seed + s."""
+    log_interval: int | None = None
+    """Updates between log rows, evaluations and checkpoints; None gives about 20 per run."""
+    eval_episodes: int = 32
+    """Greedy evaluation episodes per seed at each log interval."""
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.rollout_length
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, math.ceil(self.total_steps / self.steps_per_update))
+
+    @property
+    def updates_per_log(self) -> int:
+        return self.log_interval or max(1, self.num_updates // 20)
+
+
+def validate(config: TrainConfig) -> TrainConfig:
+    """Reject values the trainer cannot run with, naming the field."""
+    net, ppo = config.network, config.ppo
+    checks = [
+        (config.total_steps > 0, f"steps must be > 0, got {config.total_steps}"),
+        (config.seeds > 0, f"seeds must be > 0, got {config.seeds}"),
+        (config.num_envs > 0, f"num_envs must be > 0, got {config.num_envs}"),
+        (config.rollout_length > 0, f"rollout_length must be > 0, got {config.rollout_length}"),
+        (config.eval_episodes > 0, f"eval_episodes must be > 0, got {config.eval_episodes}"),
+        (config.log_interval is None or config.log_interval > 0,
+         f"log_interval must be > 0, got {config.log_interval}"),
+        (net.n_embd > 0 and net.n_head > 0 and net.n_embd % net.n_head == 0,
+         f"network.n_embd ({net.n_embd}) must be divisible by network.n_head ({net.n_head})"),
+        (net.n_block > 0, f"network.n_block must be > 0, got {net.n_block}"),
+        (net.compressor_heads > 0,
+         f"network.compressor_heads must be > 0, got {net.compressor_heads}"),
+        (net.consensus_iterations is None or net.consensus_iterations >= 0,
+         f"network.consensus_iterations (m) must be >= 0, got {net.consensus_iterations}"),
+        (net.consensus_source in CONSENSUS_SOURCES,
+         f"network.consensus_source must be one of {CONSENSUS_SOURCES}, "
+         f"got {net.consensus_source!r}"),
+        (ppo.epochs > 0, f"ppo.epochs must be > 0, got {ppo.epochs}"),
+        (ppo.num_minibatches > 0, f"ppo.num_minibatches must be > 0, got {ppo.num_minibatches}"),
+        (config.num_envs % ppo.num_minibatches == 0,
+         f"num_envs ({config.num_envs}) must be divisible by ppo.num_minibatches "
+         f"({ppo.num_minibatches})"),
+        (0.0 < ppo.target_tau <= 1.0, f"ppo.target_tau must be in (0, 1], got {ppo.target_tau}"),
+        (ppo.lr > 0, f"ppo.lr must be > 0, got {ppo.lr}"),
+        (0.0 <= ppo.gamma <= 1.0, f"ppo.gamma must be in [0, 1], got {ppo.gamma}"),
+        (0.0 <= ppo.gae_lambda <= 1.0, f"ppo.gae_lambda must be in [0, 1], got {ppo.gae_lambda}"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise CmatError(f"invalid config: {message}")
+    return config
+
+
+def load_config(
+    yaml_file: Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    base: TrainConfig | None = None,
+) -> TrainConfig:
+    """Merge defaults (or `base`), a YAML file and `key=value` overrides into a checked config."""
+    schema = OmegaConf.structured(base if base is not None else TrainConfig)
+    layers = [schema]
+    try:
+        if yaml_file is not None:
+            text = Path(yaml_file).read_text()
+            loaded = yaml.safe_load(text) or {}
+            if not isinstance(loaded, dict):
+                raise CmatError(f"config file {yaml_file} must hold a mapping of keys to values")
+            layers.append(OmegaConf.create(loaded))
+        for item in overrides:
+            if "=" not in item:
+                raise CmatError(f"override {item!r} must look like key=value")
+        if overrides:
+            layers.append(OmegaConf.from_dotlist(list(overrides)))
+        merged = OmegaConf.merge(*layers)
+        config = OmegaConf.to_object(merged)
+    except FileNotFoundError:
+        raise CmatError(f"config file not found: {yaml_file}") from None
+    except yaml.YAMLError as error:
+        raise CmatError(f"config file {yaml_file} is not valid YAML: {one_line(error)}") from None
+    except OmegaConfBaseException as error:
+        raise CmatError(f"invalid config: {one_line(error)}") from None
+    assert isinstance(config, TrainConfig)
+    return validate(config)
+
+
+def to_yaml(config: TrainConfig) -> str:
+    return yaml.safe_dump(asdict(config), sort_keys=False)
+
+
+def from_yaml(text: str) -> TrainConfig:
+    """Read a resolved config written by `to_yaml` (a run directory's config.yaml)."""
+    try:
+        loaded = yaml.safe_load(text)
+        config = OmegaConf.to_object(
+            OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.create(loaded))
+        )
+    except (yaml.YAMLError, OmegaConfBaseException, ValueError) as error:
+        raise CmatError(f"unreadable run config: {one_line(error)}") from None
+    assert isinstance(config, TrainConfig)
+    return validate(config)
+
+
+def one_line(error: BaseException) -> str:
+    """The first line of an exception message (OmegaConf appends a multi-line context)."""
+    text = str(error).strip().splitlines()
+    return text[0] if text else type(error).__name__

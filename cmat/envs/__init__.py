@@ -1,0 +1,86 @@
+"""Environment registry: `make_env("PREFIX:NAME", **options)` builds any supported `MarlEnv`.
+
+Suites are imported on first use, so matrix games never pay for importing JaxMARL.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from collections.abc import Callable, Iterable
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
+from cmat.errors import CmatError
+
+__all__ = ["ENV_PREFIXES", "AgentIdWrapper", "EnvSpec", "MarlEnv", "TimeStep", "make_env"]
+
+ENV_PREFIXES = ("matrix", "smax", "mpe")
+"""Suites an environment id may name before the colon."""
+
+
+class AgentIdWrapper:
+    """Appends each agent's one-hot id to its observation."""
+
+    def __init__(self, env: MarlEnv) -> None:
+        self.env = env
+        self.spec = dataclasses.replace(env.spec, obs_dim=env.spec.obs_dim + env.spec.num_agents)
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        """Start an episode."""
+        state, timestep = self.env.reset(key)
+        return state, self._with_id(timestep)
+
+    def step(self, key: jax.Array, state: Any, actions: jax.Array) -> tuple[Any, TimeStep]:
+        """Step the wrapped environment."""
+        state, timestep = self.env.step(key, state, actions)
+        return state, self._with_id(timestep)
+
+    def _with_id(self, timestep: TimeStep) -> TimeStep:
+        ids = jnp.eye(self.env.spec.num_agents, dtype=timestep.obs.dtype)
+        return timestep._replace(obs=jnp.concatenate([timestep.obs, ids], axis=-1))
+
+
+def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
+    """Build `matrix:NAME`, `smax:SCENARIO` or `mpe:NAME`; `agent_id` appends one-hot agent ids."""
+    prefix, _, name = env_id.partition(":")
+    factory: Callable[..., MarlEnv]
+    if prefix == "matrix":
+        from cmat.envs import matrix
+
+        factory = matrix.GAMES[_choose("matrix game", name, matrix.GAMES)]
+        options: Iterable[str] = inspect.signature(factory).parameters
+    elif prefix == "smax":
+        from cmat.envs import jaxmarl_envs
+
+        scenario = _choose("SMAX scenario", name, jaxmarl_envs.SMAX_SCENARIOS)
+        factory = partial(jaxmarl_envs.SmaxEnv, scenario)
+        options = jaxmarl_envs.SMAX_OPTIONS
+    elif prefix == "mpe":
+        from cmat.envs import jaxmarl_envs
+
+        factory = jaxmarl_envs.MPE_ENVS[_choose("MPE environment", name, jaxmarl_envs.MPE_ENVS)]
+        options = jaxmarl_envs.MPE_OPTIONS
+    else:
+        raise CmatError(
+            f"unknown environment prefix {prefix!r} in {env_id!r} (ids are PREFIX:NAME); "
+            f"available: {', '.join(ENV_PREFIXES)}"
+        )
+    unknown = sorted(set(kwargs) - set(options))
+    if unknown:
+        raise CmatError(
+            f"unknown option {unknown[0]!r} for {env_id}; accepted: "
+            f"{', '.join(['agent_id', *options])}"
+        )
+    env = factory(**kwargs)
+    return AgentIdWrapper(env) if agent_id else env
+
+
+def _choose(kind: str, name: str, available: Iterable[str]) -> str:
+    if name not in available:
+        raise CmatError(f"unknown {kind} {name!r}; available: {', '.join(available)}")
+    return name

@@ -1,0 +1,132 @@
+"""JaxMARL environments (SMAX, MPE simple_spread) adapted to the `MarlEnv` protocol.
+
+Per-agent dicts become arrays stacked in `env.agents` order, and the team reward is the mean of
+the agents' rewards: SMAX gives every ally the same reward, so the mean is that reward;
+simple_spread mixes a shared coverage reward with per-agent collision penalties (`local_ratio`). The adapters call `step_env` and reset automatically themselves, so `won` is read from the
+terminal state before it is replaced by the next episode's first state.
+
+JaxMARL ends an episode on the transition taken at `step == max_steps`, so episodes last up to
+`max_steps + 1` transitions; `EnvSpec.max_episode_steps` is that true length.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import inspect
+import io
+import sys
+from typing import Any
+from unittest import mock
+
+import jax
+import jax.numpy as jnp
+
+from cmat.envs.protocol import EnvSpec, TimeStep
+
+# JaxMARL prints while importing, after its brax probe rebinds sys.stdout/stderr to
+# sys.__stdout__/__stderr__; patching those keeps the prints quiet and the streams as they were.
+with (
+    contextlib.redirect_stdout(io.StringIO()) as _quiet,
+    mock.patch.multiple(sys, __stdout__=_quiet, __stderr__=sys.stderr),
+):
+    from jaxmarl.environments.mpe import SimpleSpreadMPE
+    from jaxmarl.environments.multi_agent_env import MultiAgentEnv
+    from jaxmarl.environments.smax import SMAX, HeuristicEnemySMAX, map_name_to_scenario
+    from jaxmarl.environments.smax.smax_env import MAP_NAME_TO_SCENARIO
+
+SMAX_SCENARIOS = tuple(MAP_NAME_TO_SCENARIO)
+"""Every scenario JaxMARL's SMAX defines."""
+
+_SMAX_FIXED = {
+    "env_kwargs", "scenario", "num_allies", "num_enemies", "action_type",
+    "smacv2_position_generation", "smacv2_unit_type_generation",
+}
+SMAX_OPTIONS = tuple(sorted(
+    (inspect.signature(SMAX).parameters.keys() | inspect.signature(HeuristicEnemySMAX).parameters)
+    - _SMAX_FIXED
+))
+"""Keyword arguments passed through to `HeuristicEnemySMAX` (those the scenario or the discrete
+action interface fix are left out)."""
+
+MPE_OPTIONS = ("num_agents", "num_landmarks", "local_ratio", "max_steps", "dt")
+"""Keyword arguments passed through to `SimpleSpreadMPE`."""
+
+
+class JaxMarlEnv:
+    """A discrete-action JaxMARL environment with every action always available and no win."""
+
+    def __init__(self, env_id: str, env: MultiAgentEnv, has_win_rate: bool = False) -> None:
+        self.env = env
+        agent = env.agents[0]
+        self.spec = EnvSpec(
+            env_id=env_id,
+            num_agents=len(env.agents),
+            obs_dim=env.observation_spaces[agent].shape[0],
+            action_dim=env.action_spaces[agent].n,
+            discrete=True,
+            max_episode_steps=env.max_steps + 1,
+            has_win_rate=has_win_rate,
+        )
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        """Start an episode."""
+        obs, state = self.env.reset(key)
+        false = jnp.asarray(False)
+        mask = self._action_mask(state)
+        return state, TimeStep(self._obs(obs), mask, jnp.float32(0.0), false, false)
+
+    def step(self, key: jax.Array, state: Any, actions: jax.Array) -> tuple[Any, TimeStep]:
+        """Take joint `actions` [n_agents]; on `done`, return the next episode's first state."""
+        step_key, reset_key = jax.random.split(key)
+        agent_actions = {agent: actions[i] for i, agent in enumerate(self.env.agents)}
+        obs, next_state, rewards, dones, _ = self.env.step_env(step_key, state, agent_actions)
+        done = dones["__all__"]
+        won = done & self._won(next_state)
+        reset_obs, reset_state = self.env.reset(reset_key)
+        state = jax.tree.map(lambda r, s: jnp.where(done, r, s), reset_state, next_state)
+        obs = jnp.where(done, self._obs(reset_obs), self._obs(obs))
+        reward = jnp.mean(self._stack(rewards)).astype(jnp.float32)
+        return state, TimeStep(obs, self._action_mask(state), reward, done, won)
+
+    def _stack(self, per_agent: dict[str, jax.Array]) -> jax.Array:
+        return jnp.stack([per_agent[agent] for agent in self.env.agents])
+
+    def _obs(self, per_agent: dict[str, jax.Array]) -> jax.Array:
+        return self._stack(per_agent).astype(jnp.float32)
+
+    def _action_mask(self, state: Any) -> jax.Array:
+        return jnp.ones((self.spec.num_agents, self.spec.action_dim), dtype=bool)
+
+    def _won(self, state: Any) -> jax.Array:
+        return jnp.asarray(False)
+
+
+class SmaxEnv(JaxMarlEnv):
+    """SMAX against JaxMARL's heuristic enemy; `won` is SMAX's won-battle condition.
+
+    A battle is won when every enemy is dead and at least one ally is alive (all dead is a draw),
+    exactly when SMAX pays its `won_battle_bonus`. Dead allies may only take the stop action.
+    """
+
+    def __init__(self, scenario: str, **kwargs: Any) -> None:
+        super().__init__(
+            f"smax:{scenario}",
+            HeuristicEnemySMAX(scenario=map_name_to_scenario(scenario), **kwargs),
+            has_win_rate=True,
+        )
+
+    def _action_mask(self, state: Any) -> jax.Array:
+        return self._stack(self.env.get_avail_actions(state)).astype(bool)
+
+    def _won(self, state: Any) -> jax.Array:
+        alive, n_allies = state.state.unit_alive, self.env.num_allies
+        return jnp.any(alive[:n_allies]) & ~jnp.any(alive[n_allies:])
+
+
+def simple_spread(**kwargs: Any) -> JaxMarlEnv:
+    """MPE simple_spread (v3) with discrete actions."""
+    return JaxMarlEnv("mpe:simple_spread", SimpleSpreadMPE(**kwargs))
+
+
+MPE_ENVS = {"simple_spread": simple_spread}
+"""MPE environment name → factory."""

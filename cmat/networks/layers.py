@@ -1,0 +1,157 @@
+"""Transformer building blocks shared by CMAT and the transformer baselines.
+
+Arrays carry any number of leading batch axes; the token axis is the second to last. Blocks are
+post-LayerNorm, as in the reference MAT implementation.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import flax.linen as nn
+import numpy as np
+
+HIDDEN_GAIN = float(np.sqrt(2.0))
+
+
+def dense(features: int, gain: float = HIDDEN_GAIN, name: str | None = None) -> nn.Dense:
+    """A dense layer with orthogonal weights of the given gain and zero bias."""
+    return nn.Dense(
+        features, kernel_init=nn.initializers.orthogonal(gain), bias_init=nn.initializers.zeros,
+        name=name,
+    )
+
+
+class MultiHeadAttention(nn.Module):
+    """Scaled dot-product attention with separate query, key and value projections."""
+
+    n_embd: int
+    n_head: int
+
+    def setup(self) -> None:
+        self.query = dense(self.n_embd, 1.0)
+        self.key = dense(self.n_embd, 1.0)
+        self.value = dense(self.n_embd, 1.0)
+        self.out = dense(self.n_embd, 1.0)
+
+    def split_heads(self, x: jax.Array) -> jax.Array:
+        return x.reshape(*x.shape[:-1], self.n_head, self.n_embd // self.n_head)
+
+    def project_memory(self, memory: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Keys and values of `memory` [..., L, d], as [..., L, heads, d/heads]."""
+        return self.split_heads(self.key(memory)), self.split_heads(self.value(memory))
+
+    def attend(self, x: jax.Array, keys: jax.Array, values: jax.Array) -> jax.Array:
+        """Every query position of `x` attends to all given keys (no mask)."""
+        heads = nn.dot_product_attention(self.split_heads(self.query(x)), keys, values)
+        return self.out(heads.reshape(*x.shape[:-1], self.n_embd))
+
+    def __call__(self, x: jax.Array, memory: jax.Array) -> jax.Array:
+        return self.attend(x, *self.project_memory(memory))
+
+
+class FeedForward(nn.Module):
+    n_embd: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return dense(self.n_embd, 1.0)(nn.gelu(dense(self.n_embd)(x)))
+
+
+class EncoderBlock(nn.Module):
+    """Bidirectional self-attention over agents; no positional information, so equivariant."""
+
+    n_embd: int
+    n_head: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        x = nn.LayerNorm()(x + MultiHeadAttention(self.n_embd, self.n_head)(x, x))
+        return nn.LayerNorm()(x + FeedForward(self.n_embd)(x))
+
+
+class ObservationEncoder(nn.Module):
+    """Encoder(O) -> Ô in R^{n x d} (paper eq. encoder), with no positional embedding."""
+
+    n_embd: int
+    n_head: int
+    n_block: int
+
+    @nn.compact
+    def __call__(self, obs: jax.Array) -> jax.Array:
+        x = nn.gelu(dense(self.n_embd)(nn.LayerNorm()(obs)))
+        x = nn.LayerNorm()(x)
+        for _ in range(self.n_block):
+            x = EncoderBlock(self.n_embd, self.n_head)(x)
+        return x
+
+
+class Compressor(nn.Module):
+    """Soft-mixture pooling of a set (paper eq. critic_compressor).
+
+    M = softmax over the N inputs of MLP(x) in R^{N x h}; z = Mᵀx in R^{h x d};
+    y = MLP(flatten z). Permutation invariant over the N inputs.
+    """
+
+    n_embd: int
+    heads: int
+    out_features: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        scores = dense(self.heads, 1.0)(nn.gelu(dense(self.n_embd)(x)))
+        mixture = jax.nn.softmax(scores, axis=-2)
+        pooled = jnp.einsum("...nh,...nd->...hd", mixture, x)
+        flat = pooled.reshape(*pooled.shape[:-2], self.heads * x.shape[-1])
+        return dense(self.out_features, 1.0)(nn.gelu(dense(self.n_embd)(flat)))
+
+
+class DecoderBlock(nn.Module):
+    """Causal self-attention over earlier tokens, cross-attention to the encoder output, MLP.
+
+    `step` processes one new token given the keys/values of the tokens before it, so iterating
+    it is exactly a causal Transformer over the whole token sequence (a key/value cache).
+    """
+
+    n_embd: int
+    n_head: int
+
+    def setup(self) -> None:
+        self.self_attention = MultiHeadAttention(self.n_embd, self.n_head)
+        self.cross_attention = MultiHeadAttention(self.n_embd, self.n_head)
+        self.feed_forward = FeedForward(self.n_embd)
+        self.norms = [nn.LayerNorm() for _ in range(3)]
+
+    def step(
+        self,
+        token: jax.Array,
+        cache: tuple[jax.Array, jax.Array] | None,
+        encoded: tuple[jax.Array, jax.Array],
+    ) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        """token [..., 1, d]; cache: keys/values [..., k, heads, d/heads] of earlier tokens."""
+        keys, values = self.self_attention.project_memory(token)
+        if cache is not None:
+            keys = jnp.concatenate([cache[0], keys], axis=-3)
+            values = jnp.concatenate([cache[1], values], axis=-3)
+        x = self.norms[0](token + self.self_attention.attend(token, keys, values))
+        x = self.norms[1](x + self.cross_attention.attend(x, *encoded))
+        x = self.norms[2](x + self.feed_forward(x))
+        return x, (keys, values)
+
+    def encode_memory(self, memory: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Cross-attention keys/values of the encoder output, computed once for all steps."""
+        return self.cross_attention.project_memory(memory)
+
+    def __call__(self, tokens: jax.Array, memory: jax.Array) -> jax.Array:
+        """Full causal pass over tokens [..., L, d]; equals iterating `step` (used in tests)."""
+        length = tokens.shape[-2]
+        causal = jnp.tril(jnp.ones((length, length), dtype=bool))
+        keys, values = self.self_attention.project_memory(tokens)
+        heads = nn.dot_product_attention(
+            self.self_attention.split_heads(self.self_attention.query(tokens)), keys, values,
+            mask=causal,
+        )
+        attended = self.self_attention.out(heads.reshape(*tokens.shape[:-1], self.n_embd))
+        x = self.norms[0](tokens + attended)
+        x = self.norms[1](x + self.cross_attention(x, memory))
+        return self.norms[2](x + self.feed_forward(x))

@@ -1,0 +1,107 @@
+"""Properties of the CMAT network: order independence, masks, the decoder cache, ablations."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cmat.algorithms.cmat import CMAT
+from cmat.algorithms.distributions import action_distribution
+from cmat.config import NetworkConfig
+from cmat.envs.protocol import EnvSpec
+from cmat.networks.layers import DecoderBlock
+
+N_AGENTS, OBS_DIM, N_ACTIONS = 5, 7, 6
+
+
+def build(discrete: bool, **network: object) -> tuple[CMAT, object, jax.Array, jax.Array]:
+    spec = EnvSpec("test", N_AGENTS, OBS_DIM, N_ACTIONS, discrete, 10, False)
+    algorithm = CMAT.build(dataclasses.replace(NetworkConfig(n_embd=32, n_head=2), **network), spec)
+    obs = jax.random.normal(jax.random.PRNGKey(1), (3, N_AGENTS, OBS_DIM))
+    mask = jax.random.bernoulli(jax.random.PRNGKey(2), 0.6, (3, N_AGENTS, N_ACTIONS))
+    mask = mask.at[..., 0].set(True)
+    params = algorithm.init(jax.random.PRNGKey(0), obs[0], mask[0])
+    return algorithm, params, obs, mask
+
+
+@pytest.mark.parametrize("discrete", [True, False])
+def test_permuting_agents_permutes_policies_and_keeps_value_and_consensus(discrete: bool) -> None:
+    algorithm, params, obs, mask = build(discrete)
+    permutation = np.array([3, 0, 4, 1, 2])
+    apply = lambda o, m: algorithm.network.apply(params, o, m)
+    original, permuted = apply(obs, mask), apply(obs[:, permutation], mask[:, permutation])
+    np.testing.assert_allclose(permuted.value, original.value, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(permuted.consensus, original.consensus, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        permuted.action_params, original.action_params[:, permutation], rtol=1e-5, atol=1e-5
+    )
+    dist = action_distribution(original.action_params, original.log_std, discrete)
+    dist_permuted = action_distribution(permuted.action_params, permuted.log_std, discrete)
+    actions = dist.sample(seed=jax.random.PRNGKey(3))
+    np.testing.assert_allclose(
+        dist_permuted.log_prob(actions[:, permutation]),
+        dist.log_prob(actions)[:, permutation], rtol=1e-5, atol=1e-5,
+    )
+
+
+def test_different_observations_change_the_consensus() -> None:
+    algorithm, params, obs, mask = build(True)
+    out = algorithm.network.apply(params, obs, mask)
+    assert not np.allclose(out.consensus[0], out.consensus[1])
+
+
+def test_masked_actions_have_zero_probability_and_are_never_sampled() -> None:
+    algorithm, params, obs, mask = build(True)
+    keys = jax.random.split(jax.random.PRNGKey(4), 2000)
+    acted = jax.vmap(algorithm.act, in_axes=(None, None, None, 0))(params, obs[0], mask[0], keys)
+    chosen_available = jnp.take_along_axis(mask[0][None], acted.actions[..., None], axis=-1)
+    assert bool(jnp.all(chosen_available))
+    output = algorithm.network.apply(params, obs, mask)
+    probs = jax.nn.softmax(output.action_params, axis=-1)
+    assert float(jnp.max(jnp.where(mask, 0.0, probs))) == 0.0
+    assert np.isfinite(float(jnp.sum(action_distribution(output.action_params, output.log_std, True).entropy())))
+
+
+def test_decoder_cache_matches_full_causal_pass() -> None:
+    block = DecoderBlock(n_embd=16, n_head=2)
+    tokens = jax.random.normal(jax.random.PRNGKey(0), (2, 6, 16))
+    memory = jax.random.normal(jax.random.PRNGKey(1), (2, 4, 16))
+    params = block.init(jax.random.PRNGKey(2), tokens, memory)
+    full = block.apply(params, tokens, memory)
+
+    def iterate(module: DecoderBlock) -> jax.Array:
+        encoded, cache, outputs = module.encode_memory(memory), None, []
+        for k in range(tokens.shape[1]):
+            y, cache = module.step(tokens[:, k : k + 1], cache, encoded)
+            outputs.append(y[:, 0])
+        return jnp.stack(outputs, axis=1)
+
+    cached = block.apply(params, method=iterate)
+    np.testing.assert_allclose(cached, full, rtol=1e-5, atol=1e-5)
+
+
+def test_iterations_and_consensus_source_change_the_output() -> None:
+    _, params_default, obs, mask = build(True)
+    outputs = {}
+    for name, overrides in {
+        "default": {},
+        "m0": {"consensus_iterations": 0},
+        "last": {"consensus_source": "last"},
+    }.items():
+        algorithm, params, _, _ = build(True, **overrides)
+        outputs[name] = algorithm.network.apply(params, obs, mask)
+        assert np.all(np.isfinite(outputs[name].action_params))
+    assert algorithm.network.iterations == N_AGENTS
+    for other in ("m0", "last"):
+        assert not np.allclose(outputs[other].action_params, outputs["default"].action_params)
+
+
+def test_m_zero_uses_e0_alone() -> None:
+    algorithm, params, obs, mask = build(True, consensus_iterations=0)
+    assert set(params["params"]["decoder"]) == {"positions"}
+    out = algorithm.network.apply(params, obs, mask)
+    assert out.consensus.shape == (3, 32)
