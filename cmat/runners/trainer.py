@@ -209,7 +209,7 @@ def optimise(
         params, opt_state = carry
         (loss, metrics), grads = grad_fn(params, minibatch, ppo)
         updates, opt_state = setup.optimizer.update(grads, opt_state, params)
-        metrics = {**metrics, "loss": loss, "grad_norm": optax.global_norm(grads)}
+        metrics = {**metrics, "loss": loss, "grad_norm": optax.tree.norm(grads)}
         return (optax.apply_updates(params, updates), opt_state), metrics
 
     def epoch(carry: tuple[Params, Any], key: jax.Array) -> tuple[tuple[Params, Any], dict]:

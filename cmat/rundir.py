@@ -1,0 +1,197 @@
+"""A run directory: resolved config, metrics CSV, TensorBoard events, checkpoint and curve.
+
+Layout::
+
+    DIR/config.yaml            the full resolved TrainConfig
+    DIR/metrics.csv            one row per seed and chunk: kind (train|eval), seed, env_steps, ...
+    DIR/tb/                    TensorBoard events
+    DIR/checkpoints/latest.ckpt
+    DIR/curve.png
+
+A checkpoint file is a magic line, a JSON header line (env_steps, size, sha256) and the trainer's
+bytes, replaced atomically, so a reader sees either the previous or the new checkpoint whole.
+Metric rows are appended before the checkpoint of their chunk is written; on resume, rows past
+the checkpoint's env_steps belong to a chunk that never finished and are dropped.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+from tensorboardX import SummaryWriter
+
+from cmat.config import TrainConfig, from_yaml, to_yaml
+from cmat.errors import CmatError
+
+LOSS_COLUMNS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac")
+COLUMNS = ("kind", "seed", "env_steps", "episode_return", "win_rate", *LOSS_COLUMNS)
+CHECKPOINT_MAGIC = b"CMAT-CHECKPOINT 1\n"
+
+Row = Mapping[str, str | int | float]
+
+
+@dataclass(frozen=True)
+class RunDir:
+    """Paths and file operations of one run directory."""
+
+    path: Path
+
+    @property
+    def config_path(self) -> Path:
+        return self.path / "config.yaml"
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.path / "metrics.csv"
+
+    @property
+    def tb_path(self) -> Path:
+        return self.path / "tb"
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.path / "checkpoints" / "latest.ckpt"
+
+    @property
+    def curve_path(self) -> Path:
+        return self.path / "curve.png"
+
+    @classmethod
+    def create(cls, path: Path, config: TrainConfig) -> RunDir:
+        """Start a new run in `path`, which must not hold one already."""
+        run = cls(Path(path))
+        if run.config_path.exists() or run.metrics_path.exists():
+            raise CmatError(
+                f"{run.path} already holds a run; use --resume {run.path} or another --out"
+            )
+        if run.path.exists() and not run.path.is_dir():
+            raise CmatError(f"--out {run.path} is not a directory")
+        run.path.mkdir(parents=True, exist_ok=True)
+        run.write_config(config)
+        return run
+
+    @classmethod
+    def open(cls, path: Path) -> RunDir:
+        """An existing run directory (one with a config.yaml)."""
+        run = cls(Path(path))
+        if not run.config_path.is_file():
+            raise CmatError(f"{run.path} holds no run (no config.yaml)")
+        return run
+
+    def config(self) -> TrainConfig:
+        return from_yaml(self.config_path.read_text())
+
+    def write_config(self, config: TrainConfig) -> None:
+        atomic_write(self.config_path, to_yaml(config).encode())
+
+    def save_checkpoint(self, data: bytes, env_steps: int) -> None:
+        header = {"env_steps": env_steps, "size": len(data), "sha256": sha256(data)}
+        self.checkpoint_path.parent.mkdir(exist_ok=True)
+        atomic_write(
+            self.checkpoint_path,
+            CHECKPOINT_MAGIC + json.dumps(header).encode() + b"\n" + data,
+        )
+
+    def load_checkpoint(self) -> tuple[bytes, int]:
+        """The trainer bytes and env steps of the latest checkpoint, checked against its header."""
+        path = self.checkpoint_path
+        if not path.is_file():
+            raise CmatError(f"no checkpoint in {self.path}")
+        raw = path.read_bytes()
+        if not raw.startswith(CHECKPOINT_MAGIC):
+            raise CmatError(f"corrupt checkpoint: {path} (not a cmat checkpoint)")
+        header_line, _, data = raw[len(CHECKPOINT_MAGIC):].partition(b"\n")
+        try:
+            header = json.loads(header_line)
+            env_steps, size, digest = int(header["env_steps"]), header["size"], header["sha256"]
+        except (ValueError, KeyError, TypeError):
+            raise CmatError(f"corrupt checkpoint: {path} (unreadable header)") from None
+        if len(data) != size:
+            raise CmatError(f"corrupt checkpoint: {path} (truncated: {len(data)} of {size} bytes)")
+        if sha256(data) != digest:
+            raise CmatError(f"corrupt checkpoint: {path} (checksum mismatch)")
+        return data, env_steps
+
+    def append_metrics(self, rows: list[Row]) -> None:
+        """Append rows (NaN and missing columns empty, other keys ignored) and sync them to disk."""
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, COLUMNS, extrasaction="ignore", lineterminator="\n")
+        if not self.metrics_path.exists() or self.metrics_path.stat().st_size == 0:
+            writer.writeheader()
+        writer.writerows({key: csv_value(value) for key, value in row.items()} for row in rows)
+        with self.metrics_path.open("a") as file:
+            file.write(buffer.getvalue())
+            file.flush()
+            os.fsync(file.fileno())
+
+    def read_metrics(self) -> list[dict[str, str]]:
+        if not self.metrics_path.is_file():
+            return []
+        with self.metrics_path.open(newline="") as file:
+            return list(csv.DictReader(file))
+
+    def truncate_metrics(self, env_steps: int) -> None:
+        """Drop trailing rows past `env_steps` and any half-written last line; keep the rest."""
+        if not self.metrics_path.is_file():
+            return
+        with self.metrics_path.open("r+b") as file:
+            lines = file.read().splitlines(keepends=True)
+            column = COLUMNS.index("env_steps")
+            keep = 0
+            for number, line in enumerate(lines, start=1):
+                if not line.endswith(b"\n"):
+                    break
+                if number > 1:
+                    try:
+                        row_steps = int(next(csv.reader([line.decode()]))[column])
+                    except (ValueError, IndexError, UnicodeDecodeError):
+                        raise CmatError(f"unreadable {self.metrics_path}, line {number}") from None
+                    if row_steps > env_steps:
+                        break
+                keep += len(line)
+            if keep < sum(map(len, lines)):
+                file.truncate(keep)
+                file.flush()
+                os.fsync(file.fileno())
+
+    def summary_writer(self, purge_step: int | None = None) -> SummaryWriter:
+        """TensorBoard writer; `purge_step` hides events at or after it left by an earlier try."""
+        return SummaryWriter(str(self.tb_path), purge_step=purge_step)
+
+
+def csv_value(value: str | int | float) -> str | int | float:
+    if isinstance(value, float) and math.isnan(value):
+        return ""
+    return value
+
+
+def sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write `data` to `path` through a synced temporary file in the same directory."""
+    descriptor, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(descriptor, "wb") as file:
+            file.write(data)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temp_name, path)
+    except BaseException:
+        Path(temp_name).unlink(missing_ok=True)
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)

@@ -1,0 +1,110 @@
+"""The learn → log → evaluate → checkpoint loop around a Trainer, writing a run directory."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
+import numpy as np
+from tensorboardX import SummaryWriter
+from tqdm import tqdm
+
+from cmat.errors import CmatError
+from cmat.experiments.plots import plot_runs
+from cmat.rundir import Row, RunDir
+
+if TYPE_CHECKING:
+    from cmat.runners.trainer import Trainer, TrainerState
+
+RESULT_KEYS = ("env_steps", "episode_return", "win_rate")
+
+
+def run_training(trainer: Trainer, run_dir: RunDir, resume: bool) -> None:
+    """Train in chunks of `updates_per_log` updates until `num_updates` are done.
+
+    After each chunk: a train and an eval row per seed in metrics.csv and TensorBoard (where
+    charts/steps_per_second counts the steps of all seeds), then the checkpoint. Resuming
+    continues from the checkpoint and drops metric rows written after it. An interruption
+    leaves the rows and the checkpoint of the last completed chunk.
+    """
+    config = trainer.config
+    if resume:
+        data, _ = run_dir.load_checkpoint()
+        state = trainer.from_bytes(data)
+        done = trainer.env_steps(state)
+        if config.num_updates * config.steps_per_update < done:
+            raise CmatError(
+                f"steps ({config.total_steps}) is below the {done} env steps already done"
+            )
+        run_dir.write_config(config)
+        run_dir.truncate_metrics(done)
+    else:
+        state = trainer.init()
+        done = trainer.env_steps(state)
+        run_dir.save_checkpoint(trainer.to_bytes(state), done)
+    chunk_steps = config.updates_per_log * config.steps_per_update
+    chunks = math.ceil((config.num_updates * config.steps_per_update - done) / chunk_steps)
+    try:
+        with (
+            run_dir.summary_writer(purge_step=done + 1 if resume else None) as writer,
+            tqdm(total=done + chunks * chunk_steps, initial=done, unit="step", unit_scale=True,
+                 desc=config.env, dynamic_ncols=True) as bar,
+        ):
+            for _ in range(chunks):
+                state = run_chunk(trainer, state, run_dir, writer, bar)
+    except KeyboardInterrupt:
+        run_dir.truncate_metrics(run_dir.load_checkpoint()[1])
+        raise
+    plot_runs([run_dir.path], run_dir.curve_path)
+
+
+def run_chunk(
+    trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: SummaryWriter, bar: tqdm
+) -> TrainerState:
+    """One chunk of updates, its evaluation, its logs and its checkpoint."""
+    config = trainer.config
+    before = trainer.env_steps(state)
+    start = time.perf_counter()
+    state, train = trainer.train_chunk(state)
+    steps = trainer.env_steps(state)
+    steps_per_second = (steps - before) * config.seeds / (time.perf_counter() - start)
+    evaluation = trainer.evaluate(state, config.eval_episodes, seed=config.seed)
+    evaluation = {**evaluation, "env_steps": train["env_steps"]}
+    rows = seed_rows("train", train, config.seed) + seed_rows("eval", evaluation, config.seed)
+    run_dir.append_metrics(rows)
+    log_scalars(writer, rows, steps, steps_per_second)
+    run_dir.save_checkpoint(trainer.to_bytes(state), steps)
+    bar.set_postfix(postfix(evaluation, trainer.env_spec.has_win_rate), refresh=False)
+    bar.update(steps - before)
+    return state
+
+
+def seed_rows(kind: str, metrics: Mapping[str, np.ndarray], base_seed: int) -> list[Row]:
+    """One CSV row per seed from per-seed metric arrays."""
+    seeds = len(metrics["env_steps"])
+    return [
+        {"kind": kind, "seed": base_seed + index, "env_steps": int(metrics["env_steps"][index])}
+        | {key: float(values[index]) for key, values in metrics.items() if key != "env_steps"}
+        for index in range(seeds)
+    ]
+
+
+def log_scalars(writer: SummaryWriter, rows: list[Row], step: int, steps_per_second: float) -> None:
+    """Rows as TensorBoard scalars: train/..., eval/..., losses/... tagged per seed."""
+    for row in rows:
+        for key, value in row.items():
+            if key in ("kind", "seed", "env_steps") or math.isnan(float(value)):
+                continue
+            namespace = row["kind"] if key in RESULT_KEYS else "losses"
+            writer.add_scalar(f"{namespace}/{key}/seed_{row['seed']}", float(value), step)
+    writer.add_scalar("charts/steps_per_second", steps_per_second, step)
+    writer.flush()
+
+
+def postfix(evaluation: Mapping[str, np.ndarray], has_win_rate: bool) -> dict[str, str]:
+    shown = {"return": f"{np.nanmean(evaluation['episode_return']):.3g}"}
+    if has_win_rate:
+        shown["win"] = f"{np.nanmean(evaluation['win_rate']):.2f}"
+    return shown

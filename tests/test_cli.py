@@ -1,0 +1,238 @@
+"""`cmat train | eval | plot` end to end with the real trainer on a tiny matrix-game budget."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import shutil
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cmat.cli import main
+from cmat.config import load_config, validate
+from cmat.rundir import RunDir
+from cmat.runners.trainer import Trainer, TrainerState
+
+TINY = ["num_envs=4", "rollout_length=25", "log_interval=5", "ppo.epochs=2", "eval_episodes=4"]
+TRAIN = ["train", "--env", "matrix:fig1", "--steps", "2000", "--seeds", "2", "--set", *TINY]
+CHUNK_STEPS = 500
+SEEDS = (0, 1)
+
+
+def rows(run: Path) -> list[dict[str, str]]:
+    with (run / "metrics.csv").open(newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def snapshot(path: Path) -> dict[str, bytes]:
+    """Every file under `path` with its bytes."""
+    return {str(f.relative_to(path)): f.read_bytes() for f in path.rglob("*") if f.is_file()}
+
+
+def one_error_line(stderr: str) -> str:
+    """The single `cmat: error:` line a failing command must print, and nothing else."""
+    assert "Traceback" not in stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cmat: error: "), stderr
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("cli") / "run"
+    assert main([*TRAIN, "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture
+def run_copy(trained: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(trained, tmp_path / "run"))
+
+
+def test_train_writes_a_complete_run_directory(trained: Path) -> None:
+    expected = validate(dataclasses.replace(
+        load_config(overrides=TINY), env="matrix:fig1", total_steps=2000, seeds=2
+    ))
+    assert RunDir.open(trained).config() == expected
+
+    written = rows(trained)
+    chunks = range(CHUNK_STEPS, 2000 + 1, CHUNK_STEPS)
+    for kind in ("train", "eval"):
+        keys = sorted((int(r["seed"]), int(r["env_steps"])) for r in written if r["kind"] == kind)
+        assert keys == sorted((seed, steps) for seed in SEEDS for steps in chunks)
+    assert {r["kind"] for r in written} == {"train", "eval"}
+    assert all(r["win_rate"] == "" for r in written)
+    assert all(float(r["episode_return"]) >= 0 for r in written if r["kind"] == "eval")
+    assert all(r["policy_loss"] and r["entropy"] for r in written if r["kind"] == "train")
+
+    events = b"".join(f.read_bytes() for f in (trained / "tb").glob("events.out.tfevents.*"))
+    for tag in ("train/episode_return/seed_1", "eval/episode_return/seed_0",
+                "losses/approx_kl/seed_0", "charts/steps_per_second"):
+        assert tag.encode() in events
+    assert b"eval/win_rate" not in events
+
+    data, steps = RunDir.open(trained).load_checkpoint()
+    assert steps == 2000 and len(data) > 0
+    assert (trained / "curve.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_eval_prints_one_json_object_with_an_entry_per_seed(
+    trained: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["eval", "--run", str(trained)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [entry["seed"] for entry in result["per_seed"]] == list(SEEDS)
+    final = {int(r["seed"]): float(r["episode_return"])
+             for r in rows(trained) if r["kind"] == "eval" and r["env_steps"] == "2000"}
+    for entry in result["per_seed"]:
+        assert set(entry) == {"seed", "episode_return", "win_rate"}
+        assert entry["win_rate"] is None
+        assert entry["episode_return"] == pytest.approx(final[entry["seed"]], rel=1e-6)
+
+
+def test_plot_writes_a_png(trained: Path, run_copy: Path, tmp_path: Path) -> None:
+    out = tmp_path / "plots" / "curves.png"
+    assert main(["plot", str(trained), str(run_copy), "--out", str(out)]) == 0
+    assert out.read_bytes().startswith(b"\x89PNG")
+
+
+def test_interrupted_then_resumed_run_continues_without_duplicates(
+    run_copy: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    original = (run_copy / "metrics.csv").read_bytes()
+    train_chunk = Trainer.train_chunk
+    calls: list[int] = []
+
+    def interrupted_second_chunk(
+        self: Trainer, state: TrainerState
+    ) -> tuple[TrainerState, dict[str, np.ndarray]]:
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return train_chunk(self, state)
+
+    monkeypatch.setattr(Trainer, "train_chunk", interrupted_second_chunk)
+    assert main(["train", "--resume", str(run_copy), "--steps", "3000"]) == 130
+    monkeypatch.undo()
+    assert "--resume" in capsys.readouterr().err
+    assert RunDir.open(run_copy).load_checkpoint()[1] == 2500
+    assert max(int(r["env_steps"]) for r in rows(run_copy)) == 2500
+    assert (run_copy / "metrics.csv").read_bytes().startswith(original)
+
+    with (run_copy / "metrics.csv").open("a") as file:
+        file.write("eval,0,3000,99.0,,,,,,\neval,1,30")
+    assert main(["train", "--resume", str(run_copy), "--steps", "3000"]) == 0
+
+    assert (run_copy / "metrics.csv").read_bytes().startswith(original)
+    written = rows(run_copy)
+    keys = Counter((r["kind"], r["seed"], r["env_steps"]) for r in written)
+    assert max(keys.values()) == 1
+    assert {int(r["env_steps"]) for r in written} == set(range(CHUNK_STEPS, 3000 + 1, CHUNK_STEPS))
+    assert len(written) == 2 * len(SEEDS) * 6
+    assert RunDir.open(run_copy).config().total_steps == 3000
+    assert RunDir.open(run_copy).load_checkpoint()[1] == 3000
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--env", "nope:x"], "unknown environment prefix 'nope'"),
+        (["--env", "smax:nope"], "unknown SMAX scenario 'nope'"),
+        (["--env", "matrix:fig1", "--set", "network.foo=1"], "Key 'foo' not in 'NetworkConfig'"),
+        (["--env", "matrix:fig1", "--set", "network.consensus_iterations=-1"],
+         "consensus_iterations (m) must be >= 0, got -1"),
+        (["--env", "matrix:fig1", "--set", "network.n_embd=10", "network.n_head=3"],
+         "n_embd (10) must be divisible by network.n_head (3)"),
+        (["--env", "matrix:fig1", "--steps", "0"], "steps must be > 0, got 0"),
+        (["--env", "matrix:fig1", "--seeds", "0"], "seeds must be > 0, got 0"),
+        (["--env", "matrix:fig1", "--algo", "mat"], "unknown algorithm 'mat'"),
+        (["--env", "matrix:fig1", "--set", "ppo.lr=fast"], "invalid config"),
+        (["--config", "missing.yaml"], "config file not found: missing.yaml"),
+    ],
+)
+def test_bad_training_input_is_one_error_line(
+    args: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    assert main(["train", *args, "--out", str(out)]) == 2
+    assert message in one_error_line(capsys.readouterr().err)
+    assert not out.exists()
+
+
+def test_bad_yaml_is_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = tmp_path / "bad.yaml"
+    config.write_text("ppo: [unclosed\n")
+    assert main(["train", "--config", str(config), "--out", str(tmp_path / "out")]) == 2
+    assert "is not valid YAML" in one_error_line(capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("argv", [[], ["fly"], ["train", "--steps", "many"], ["plot", "x"]])
+def test_usage_errors_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(argv) == 2
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_out_pointing_at_a_run_changes_nothing(
+    trained: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = snapshot(trained)
+    assert main([*TRAIN, "--out", str(trained)]) == 2
+    assert "already holds a run; use --resume" in one_error_line(capsys.readouterr().err)
+    assert snapshot(trained) == before
+
+
+def test_resume_accepts_only_steps(trained: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    before = snapshot(trained)
+    assert main(["train", "--resume", str(trained), "--seeds", "3"]) == 2
+    assert "--resume takes no other option than --steps" in one_error_line(capsys.readouterr().err)
+    assert main(["train", "--resume", str(trained), "--steps", "1000"]) == 2
+    assert "below the 2000 env steps already done" in one_error_line(capsys.readouterr().err)
+    assert snapshot(trained) == before
+
+
+def test_missing_run_or_checkpoint_is_reported(
+    trained: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["eval", "--run", str(tmp_path)]) == 2
+    assert "holds no run" in one_error_line(capsys.readouterr().err)
+    shutil.copy(trained / "config.yaml", tmp_path / "config.yaml")
+    for argv in (["eval", "--run", str(tmp_path)], ["train", "--resume", str(tmp_path)]):
+        assert main(argv) == 2
+        assert f"no checkpoint in {tmp_path}" in one_error_line(capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garble"])
+def test_corrupt_checkpoint_is_reported_and_changes_nothing(
+    run_copy: Path, damage: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    checkpoint = run_copy / "checkpoints" / "latest.ckpt"
+    raw = checkpoint.read_bytes()
+    middle = len(raw) // 2
+    checkpoint.write_bytes(raw[:middle] if damage == "truncate"
+                           else raw[:middle] + bytes(b ^ 0xFF for b in raw[middle:]))
+    before = snapshot(run_copy)
+    for argv in (["eval", "--run", str(run_copy)],
+                 ["train", "--resume", str(run_copy), "--steps", "3000"]):
+        assert main(argv) == 2
+        assert f"corrupt checkpoint: {checkpoint}" in one_error_line(capsys.readouterr().err)
+    assert snapshot(run_copy) == before
+
+
+def test_console_script(trained: Path) -> None:
+    script = Path(sys.executable).parent / "cmat"
+    done = subprocess.run([script, "eval", "--run", trained, "--episodes", "2"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == ""
+    assert len(json.loads(done.stdout)["per_seed"]) == len(SEEDS)
+
+    failed = subprocess.run([script, "train", "--env", "smax:nope"],
+                            capture_output=True, text=True, timeout=300)
+    assert failed.returncode == 2
+    assert "unknown SMAX scenario" in one_error_line(failed.stderr)

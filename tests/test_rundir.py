@@ -1,0 +1,160 @@
+"""Run directory files: refusal to overwrite, atomic checksummed checkpoints, metric rows, plots."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import pytest
+from matplotlib.image import imread
+
+from cmat.config import TrainConfig
+from cmat.errors import CmatError
+from cmat.experiments.plots import plot_runs
+from cmat.rundir import COLUMNS, RunDir
+
+
+def snapshot(path: Path) -> dict[str, bytes]:
+    """Every file under `path` with its bytes."""
+    return {str(f.relative_to(path)): f.read_bytes() for f in path.rglob("*") if f.is_file()}
+
+
+def eval_rows(steps: list[int], seeds: int, win_rate: bool) -> list[dict]:
+    return [
+        {"kind": "eval", "seed": seed, "env_steps": step, "episode_return": step / 100 + seed,
+         "win_rate": seed / seeds if win_rate else math.nan}
+        for step in steps for seed in range(seeds)
+    ]
+
+
+def test_create_writes_config_that_reads_back(tmp_path: Path) -> None:
+    config = TrainConfig(env="smax:3m", seeds=3, total_steps=1234)
+    run = RunDir.create(tmp_path / "a" / "b", config)
+    assert run.config() == config
+    assert RunDir.open(run.path).config() == config
+
+
+@pytest.mark.parametrize("existing", ["config.yaml", "metrics.csv"])
+def test_create_refuses_a_directory_holding_a_run(tmp_path: Path, existing: str) -> None:
+    (tmp_path / existing).write_text("kept")
+    (tmp_path / "other.txt").write_text("also kept")
+    before = snapshot(tmp_path)
+    with pytest.raises(CmatError, match="already holds a run; use --resume"):
+        RunDir.create(tmp_path, TrainConfig())
+    assert snapshot(tmp_path) == before
+
+
+def test_create_accepts_an_existing_directory_without_a_run(tmp_path: Path) -> None:
+    (tmp_path / "notes.txt").write_text("x")
+    RunDir.create(tmp_path, TrainConfig())
+    assert (tmp_path / "config.yaml").is_file()
+
+
+def test_open_without_config_is_an_error(tmp_path: Path) -> None:
+    with pytest.raises(CmatError, match="holds no run"):
+        RunDir.open(tmp_path)
+
+
+def test_checkpoint_round_trip_leaves_no_temporary_files(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path, TrainConfig())
+    with pytest.raises(CmatError, match=f"no checkpoint in {tmp_path}"):
+        run.load_checkpoint()
+    run.save_checkpoint(b"first", 10)
+    payload = bytes(range(256)) * 50
+    run.save_checkpoint(payload, 20)
+    assert run.load_checkpoint() == (payload, 20)
+    assert [p.name for p in run.checkpoint_path.parent.iterdir()] == ["latest.ckpt"]
+
+
+def test_failed_checkpoint_write_keeps_the_previous_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run = RunDir.create(tmp_path, TrainConfig())
+    run.save_checkpoint(b"old", 5)
+
+    def crash(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", crash)
+    with pytest.raises(KeyboardInterrupt):
+        run.save_checkpoint(b"new" * 1000, 10)
+    monkeypatch.undo()
+    assert run.load_checkpoint() == (b"old", 5)
+    assert [p.name for p in run.checkpoint_path.parent.iterdir()] == ["latest.ckpt"]
+
+
+@pytest.mark.parametrize(
+    ("damage", "reason"),
+    [
+        (lambda raw: raw[:-7], "truncated"),
+        (lambda raw: raw[:-7] + b"garbage", "checksum mismatch"),
+        (lambda raw: raw[:10], "not a cmat checkpoint"),
+        (lambda raw: b"", "not a cmat checkpoint"),
+        (lambda raw: raw.replace(b'"size"', b'"sise"'), "unreadable header"),
+    ],
+)
+def test_damaged_checkpoint_is_reported(tmp_path: Path, damage, reason: str) -> None:
+    run = RunDir.create(tmp_path, TrainConfig())
+    run.save_checkpoint(b"state bytes" * 100, 42)
+    run.checkpoint_path.write_bytes(damage(run.checkpoint_path.read_bytes()))
+    with pytest.raises(CmatError, match=f"corrupt checkpoint: {run.checkpoint_path} \\({reason}"):
+        run.load_checkpoint()
+
+
+def test_metrics_rows_append_with_nan_as_empty(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path, TrainConfig())
+    run.append_metrics([{"kind": "train", "seed": 0, "env_steps": 100, "episode_return": math.nan,
+                         "win_rate": 0.5, "policy_loss": 0.25, "grad_norm": 3.0}])
+    run.append_metrics(eval_rows([100], 2, win_rate=False))
+    text = run.metrics_path.read_text()
+    assert text.splitlines()[0] == ",".join(COLUMNS)
+    assert text.count("kind,") == 1
+    rows = run.read_metrics()
+    assert [(r["kind"], r["seed"]) for r in rows] == [("train", "0"), ("eval", "0"), ("eval", "1")]
+    assert rows[0]["episode_return"] == "" and rows[0]["policy_loss"] == "0.25"
+    assert rows[1]["win_rate"] == "" and rows[1]["value_loss"] == ""
+
+
+def test_truncate_drops_rows_past_the_checkpoint_and_keeps_earlier_bytes(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path, TrainConfig())
+    run.append_metrics(eval_rows([100, 200], 2, win_rate=True))
+    kept = run.metrics_path.read_bytes()
+    run.truncate_metrics(200)
+    assert run.metrics_path.read_bytes() == kept
+    run.append_metrics(eval_rows([300], 2, win_rate=True))
+    with run.metrics_path.open("a") as file:
+        file.write("eval,0,400,1.")
+    run.truncate_metrics(200)
+    assert run.metrics_path.read_bytes() == kept
+    run.truncate_metrics(100)
+    assert {r["env_steps"] for r in run.read_metrics()} == {"100"}
+    assert kept.startswith(run.metrics_path.read_bytes())
+
+
+def test_truncate_reports_a_garbled_row(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path, TrainConfig())
+    run.append_metrics(eval_rows([100], 1, win_rate=True))
+    with run.metrics_path.open("a") as file:
+        file.write("eval,0,lots,1\n")
+    with pytest.raises(CmatError, match="line 3"):
+        run.truncate_metrics(100)
+
+
+def test_plot_draws_a_win_rate_panel_only_where_a_run_defines_it(tmp_path: Path) -> None:
+    no_win = RunDir.create(tmp_path / "mpe", TrainConfig(env="mpe:simple_spread", seeds=2))
+    no_win.append_metrics(eval_rows([100, 200, 300], 2, win_rate=False))
+    with_win = RunDir.create(tmp_path / "smax", TrainConfig(env="smax:3m", seeds=3))
+    with_win.append_metrics(eval_rows([100, 300], 3, win_rate=True))
+
+    plot_runs([no_win.path], tmp_path / "one.png")
+    plot_runs([no_win.path, with_win.path], tmp_path / "out" / "two.png")
+    one, two = imread(tmp_path / "one.png"), imread(tmp_path / "out" / "two.png")
+    assert one.shape[0] == two.shape[0] and two.shape[1] == 2 * one.shape[1]
+
+
+def test_plot_of_a_run_without_evaluations_is_an_error(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path / "empty", TrainConfig())
+    with pytest.raises(CmatError, match="no evaluation results"):
+        plot_runs([run.path], tmp_path / "x.png")
+    assert not (tmp_path / "x.png").exists()

@@ -1,0 +1,154 @@
+"""The trainer: CMAT's loss on a fixed batch, the target critic, seeds, and tasks actually learned."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cmat.algorithms.base import Batch
+from cmat.algorithms.cmat import CMAT
+from cmat.config import NetworkConfig, PPOConfig, load_config
+from cmat.envs.protocol import EnvSpec
+from cmat.runners import trainer as trainer_lib
+from cmat.runners.trainer import Trainer
+
+TINY = ["num_envs=8", "rollout_length=10", "ppo.epochs=2", "network.n_embd=16", "eval_episodes=4"]
+
+
+def fixed_batch(seed: int = 0, size: int = 12, agents: int = 3, actions: int = 4) -> Batch:
+    rng = np.random.default_rng(seed)
+    mask = rng.random((size, agents, actions)) < 0.6
+    mask[..., 1] = True
+    chosen = np.array([[rng.choice(np.flatnonzero(m)) for m in team] for team in mask])
+    return Batch(
+        obs=jnp.asarray(rng.normal(size=(size, agents, 5)), jnp.float32),
+        action_mask=jnp.asarray(mask),
+        actions=jnp.asarray(chosen),
+        log_probs=jnp.asarray(np.log(rng.uniform(0.1, 0.9, (size, agents))), jnp.float32),
+        values=jnp.asarray(rng.normal(size=size), jnp.float32),
+        advantages=jnp.asarray(rng.normal(size=size), jnp.float32),
+        targets=jnp.asarray(rng.normal(scale=20.0, size=size), jnp.float32),
+    )
+
+
+def numpy_cmat_loss(logits: np.ndarray, values: np.ndarray, batch: Batch, ppo: PPOConfig) -> dict:
+    """The paper's objective written out in numpy from the network's raw outputs."""
+    shifted = logits - logits.max(-1, keepdims=True)
+    log_softmax = shifted - np.log(np.exp(shifted).sum(-1, keepdims=True))
+    log_probs = np.take_along_axis(log_softmax, np.asarray(batch.actions)[..., None], -1)[..., 0]
+    ratio = np.prod(np.exp(log_probs) / np.exp(np.asarray(batch.log_probs)), axis=-1)
+    adv = np.asarray(batch.advantages)
+    eps = ppo.clip_eps
+    policy = -np.mean(np.minimum(ratio * adv, np.clip(ratio, 1 - eps, 1 + eps) * adv))
+    probs = np.exp(log_softmax)
+    entropy = np.mean(-np.sum(np.where(probs > 0, probs * log_softmax, 0.0), axis=-1))
+    old, targets = np.asarray(batch.values), np.asarray(batch.targets)
+
+    def huber(residual: np.ndarray) -> np.ndarray:
+        delta = ppo.huber_delta
+        return np.where(np.abs(residual) <= delta, 0.5 * residual**2,
+                        delta * (np.abs(residual) - 0.5 * delta))
+
+    clipped = old + np.clip(values - old, -eps, eps)
+    value = np.mean(np.maximum(huber(targets - values), huber(targets - clipped)))
+    total = policy - ppo.ent_coef * entropy + ppo.value_coef * value
+    return {"policy_loss": policy, "entropy": entropy, "value_loss": value, "total": total}
+
+
+def test_cmat_loss_matches_numpy_reference_on_a_fixed_batch() -> None:
+    batch = fixed_batch()
+    spec = EnvSpec("test", 3, 5, 4, True, 10, False)
+    algorithm = CMAT.build(NetworkConfig(n_embd=16, n_head=2), spec)
+    params = algorithm.init(jax.random.PRNGKey(0), batch.obs[0], batch.action_mask[0])
+    ppo = PPOConfig(clip_eps=0.2)
+    total, metrics = algorithm.loss(params, batch, ppo)
+    output = algorithm.network.apply(params, batch.obs, batch.action_mask)
+    expected = numpy_cmat_loss(
+        np.asarray(output.action_params, np.float64), np.asarray(output.value, np.float64), batch, ppo
+    )
+    for key in ("policy_loss", "entropy", "value_loss"):
+        assert float(metrics[key]) == pytest.approx(expected[key], rel=1e-4, abs=1e-5), key
+    assert float(total) == pytest.approx(expected["total"], rel=1e-4, abs=1e-5)
+
+
+def test_joint_ratio_is_one_at_the_collecting_parameters() -> None:
+    batch = fixed_batch(seed=1)
+    spec = EnvSpec("test", 3, 5, 4, True, 10, False)
+    algorithm = CMAT.build(NetworkConfig(n_embd=16), spec)
+    params = algorithm.init(jax.random.PRNGKey(1), batch.obs[0], batch.action_mask[0])
+    acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+        params, batch.obs, batch.action_mask, jax.random.split(jax.random.PRNGKey(2), 12)
+    )
+    batch = batch._replace(actions=acted.actions, log_probs=acted.log_probs)
+    _, metrics = algorithm.loss(params, batch, PPOConfig())
+    assert float(metrics["policy_loss"]) == pytest.approx(-float(jnp.mean(batch.advantages)), abs=1e-5)
+    assert float(metrics["approx_kl"]) == pytest.approx(0.0, abs=1e-6)
+    assert float(metrics["clip_frac"]) == 0.0
+
+
+def test_target_critic_is_soft_updated_after_each_update() -> None:
+    config = load_config(overrides=["env=matrix:fig1", "ppo.target_tau=0.25", *TINY])
+    setup = trainer_lib.build_setup(config)
+    state = trainer_lib.init_state(setup, jax.random.PRNGKey(0))
+    perturbed = jax.tree.map(lambda x: x + 1.0, state.target_params)
+    state = state.replace(target_params=perturbed)
+    new_state, _ = jax.jit(lambda s: trainer_lib.update_step(setup, s))(state)
+    expected = jax.tree.map(lambda p, t: 0.25 * p + 0.75 * t, new_state.params, perturbed)
+    for got, want in zip(jax.tree.leaves(new_state.target_params), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert int(new_state.update_step) == 1
+
+
+def test_seeds_in_one_program_match_separate_runs() -> None:
+    overrides = ["env=matrix:fig1", "total_steps=160", "log_interval=2", *TINY]
+    together = Trainer(load_config(overrides=[*overrides, "seeds=2", "seed=3"]))
+    alone = Trainer(load_config(overrides=[*overrides, "seeds=1", "seed=4"]))
+    state_together, metrics_together = together.train_chunk(together.init())
+    state_alone, metrics_alone = alone.train_chunk(alone.init())
+    for both, one in zip(jax.tree.leaves(state_together.params), jax.tree.leaves(state_alone.params)):
+        np.testing.assert_allclose(both[1], one[0], rtol=1e-4, atol=1e-5)
+    assert any(not np.allclose(leaf[0], leaf[1]) for leaf in jax.tree.leaves(state_together.params))
+    assert metrics_together["env_steps"].tolist() == [160, 160]
+
+
+def test_make_train_is_one_pure_program() -> None:
+    config = load_config(overrides=["env=matrix:fig1", "total_steps=240", *TINY])
+    state, metrics = jax.jit(trainer_lib.make_train(config))(jax.random.PRNGKey(0))
+    assert int(state.update_step) == config.num_updates == 3
+    assert metrics["policy_loss"].shape == (3,)
+    assert np.all(np.isfinite(np.asarray(metrics["value_loss"])))
+
+
+def test_fig1_cmat_reaches_the_optimum_in_at_least_9_of_10_seeds() -> None:
+    """Paper Fig. 1: the greedy joint action must be (B, B), payoff 100, not the (A, A) trap."""
+    config = load_config(overrides=[
+        "env=matrix:fig1", "total_steps=12000", "num_envs=16", "rollout_length=25",
+        "ppo.epochs=5", "seeds=10", "log_interval=30", "eval_episodes=2",
+    ])
+    trainer = Trainer(config)
+    state, _ = trainer.train_chunk(trainer.init())
+    greedy = jax.vmap(trainer.setup.algorithm.greedy, in_axes=(0, None, None))(
+        state.params, jnp.eye(2), jnp.ones((2, 2), bool)
+    )
+    at_optimum = np.all(np.asarray(greedy) == 1, axis=-1)
+    assert at_optimum.sum() >= 9, greedy
+    returns = trainer.evaluate(state, 2)["episode_return"]
+    assert np.sum(returns == 100.0) == at_optimum.sum()
+
+
+def test_smax_3m_improves_on_its_starting_return() -> None:
+    """Measured: greedy return 0.2 at init, 1.1-1.5 after 32k-48k steps (win rate 0.3-0.6)."""
+    config = load_config(overrides=[
+        "env=smax:3m", "total_steps=32000", "log_interval=10", "eval_episodes=64",
+    ])
+    trainer = Trainer(config)
+    state = trainer.init()
+    before = trainer.evaluate(state, 64)
+    state, metrics = trainer.train_chunk(state)
+    after = trainer.evaluate(state, 64)
+    assert metrics["env_steps"][0] == 32000
+    assert after["episode_return"][0] >= before["episode_return"][0] + 0.5, (before, after)
