@@ -96,11 +96,9 @@ def train_command(args: argparse.Namespace) -> None:
             config = validate(dataclasses.replace(config, total_steps=args.steps))
         trainer = build_trainer(config)
     else:
-        config = load_config(args.config, args.set)
         flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds}
-        config = validate(dataclasses.replace(
-            config, **{key: value for key, value in flags.items() if value is not None}
-        ))
+        explicit = [f"{key}={value}" for key, value in flags.items() if value is not None]
+        config = load_config(args.config, [*args.set, *explicit])
         trainer = build_trainer(config)
         run_dir = RunDir.create(args.out or default_out(config), config)
     try:

@@ -19,6 +19,19 @@ from omegaconf.errors import OmegaConfBaseException
 from cmat.errors import CmatError
 
 CONSENSUS_SOURCES = ("mixture", "last")
+ALGORITHMS = ("cmat", "mat", "pmat", "triple_bert", "happo", "mappo")
+
+ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {
+    "cmat": {},
+    "mat": {},
+    "pmat": {},
+    "triple_bert": {},
+    "mappo": {"ppo": {"clip_eps": 0.2, "epochs": 5}},
+    "happo": {"ppo": {"clip_eps": 0.2, "epochs": 5}, "network": {"n_embd": 128}},
+}
+"""Each algorithm's reference settings for SMAC where they differ from MAT's (MAPPO: Yu et al.
+2022 SMAC configs; HAPPO: HARL's SMAC configs). They sit between the dataclass defaults and a
+YAML file, so `--config` and `--set` still override them."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +81,8 @@ class PPOConfig:
     huber_delta: float = 10.0
     clipped_value_loss: bool = True
     normalize_advantages: bool = True
+    order_loss_coef: float = 1.0
+    """PMAT only: weight of the clipped PPO term on the sampled agent order's log-probability."""
 
 
 @dataclass(frozen=True)
@@ -79,6 +94,7 @@ class TrainConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
     algo: str = "cmat"
+    """One of cmat, mat, pmat, triple_bert, happo, mappo."""
     total_steps: int = 200_000
     """Environment steps per seed (one step = one joint action in one environment)."""
     num_envs: int = 32
@@ -113,6 +129,8 @@ def validate(config: TrainConfig) -> TrainConfig:
     """Reject values the trainer cannot run with, naming the field."""
     net, ppo = config.network, config.ppo
     checks = [
+        (config.algo in ALGORITHMS,
+         f"unknown algorithm {config.algo!r}; available: {', '.join(ALGORITHMS)}"),
         (config.total_steps > 0, f"steps must be > 0, got {config.total_steps}"),
         (config.seeds > 0, f"seeds must be > 0, got {config.seeds}"),
         (config.num_envs > 0, f"num_envs must be > 0, got {config.num_envs}"),
@@ -132,9 +150,9 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"got {net.consensus_source!r}"),
         (ppo.epochs > 0, f"ppo.epochs must be > 0, got {ppo.epochs}"),
         (ppo.num_minibatches > 0, f"ppo.num_minibatches must be > 0, got {ppo.num_minibatches}"),
-        (config.num_envs % ppo.num_minibatches == 0,
-         f"num_envs ({config.num_envs}) must be divisible by ppo.num_minibatches "
-         f"({ppo.num_minibatches})"),
+        (config.steps_per_update % ppo.num_minibatches == 0,
+         f"num_envs * rollout_length ({config.steps_per_update}) must be divisible by "
+         f"ppo.num_minibatches ({ppo.num_minibatches})"),
         (0.0 < ppo.target_tau <= 1.0, f"ppo.target_tau must be in (0, 1], got {ppo.target_tau}"),
         (ppo.lr > 0, f"ppo.lr must be > 0, got {ppo.lr}"),
         (0.0 <= ppo.gamma <= 1.0, f"ppo.gamma must be in [0, 1], got {ppo.gamma}"),
@@ -151,7 +169,8 @@ def load_config(
     overrides: list[str] | tuple[str, ...] = (),
     base: TrainConfig | None = None,
 ) -> TrainConfig:
-    """Merge defaults (or `base`), a YAML file and `key=value` overrides into a checked config."""
+    """Merge defaults (or `base`), the algorithm's defaults, a YAML file and `key=value`
+    overrides into a checked config."""
     schema = OmegaConf.structured(base if base is not None else TrainConfig)
     layers = [schema]
     try:
@@ -166,8 +185,10 @@ def load_config(
                 raise CmatError(f"override {item!r} must look like key=value")
         if overrides:
             layers.append(OmegaConf.from_dotlist(list(overrides)))
-        merged = OmegaConf.merge(*layers)
-        config = OmegaConf.to_object(merged)
+        algo = OmegaConf.merge(*layers).algo
+        if base is None and algo in ALGORITHM_DEFAULTS:
+            layers.insert(1, OmegaConf.create(ALGORITHM_DEFAULTS[algo]))
+        config = OmegaConf.to_object(OmegaConf.merge(*layers))
     except FileNotFoundError:
         raise CmatError(f"config file not found: {yaml_file}") from None
     except yaml.YAMLError as error:

@@ -151,7 +151,7 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
          "n_embd (10) must be divisible by network.n_head (3)"),
         (["--env", "matrix:fig1", "--steps", "0"], "steps must be > 0, got 0"),
         (["--env", "matrix:fig1", "--seeds", "0"], "seeds must be > 0, got 0"),
-        (["--env", "matrix:fig1", "--algo", "mat"], "unknown algorithm 'mat'"),
+        (["--env", "matrix:fig1", "--algo", "nope"], "unknown algorithm 'nope'"),
         (["--env", "matrix:fig1", "--set", "ppo.lr=fast"], "invalid config"),
         (["--config", "missing.yaml"], "config file not found: missing.yaml"),
     ],

@@ -102,6 +102,6 @@ def test_iterations_and_consensus_source_change_the_output() -> None:
 
 def test_m_zero_uses_e0_alone() -> None:
     algorithm, params, obs, mask = build(True, consensus_iterations=0)
-    assert set(params["params"]["decoder"]) == {"positions"}
+    assert "decoder" not in params["params"]
     out = algorithm.network.apply(params, obs, mask)
     assert out.consensus.shape == (3, 32)

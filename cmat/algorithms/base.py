@@ -32,6 +32,8 @@ class Batch(NamedTuple):
     """[B] team advantages"""
     targets: jax.Array
     """[B] value targets (normalised space)"""
+    extras: Any = ()
+    """[B, ...] whatever the algorithm's `act` stored with each step (e.g. a sampled agent order)"""
 
 
 class ActResult(NamedTuple):
@@ -40,6 +42,8 @@ class ActResult(NamedTuple):
     """[n] per-agent log-probabilities of the sampled actions"""
     value: jax.Array
     """[] team value (normalised space)"""
+    extras: Any = ()
+    """any pytree the loss needs back from acting time; stored with the transition"""
 
 
 class Algorithm(Protocol):

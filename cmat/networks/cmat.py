@@ -79,9 +79,11 @@ class ConsensusDecoder(nn.Module):
     @nn.compact
     def __call__(self, e0: jax.Array, encoded: jax.Array) -> jax.Array:
         """e0 [..., d], encoded [..., n, d] -> E = [e0..em] as [..., m+1, d]."""
+        if self.iterations == 0:
+            return e0[..., None, :]
         blocks = [DecoderBlock(self.n_embd, self.n_head) for _ in range(self.n_block)]
         positions = self.param(
-            "positions", nn.initializers.normal(0.02), (max(self.iterations, 1), self.n_embd)
+            "positions", nn.initializers.normal(0.02), (self.iterations, self.n_embd)
         )
         memories = [block.encode_memory(encoded) for block in blocks]
         caches: list[tuple[jax.Array, jax.Array] | None] = [None] * self.n_block

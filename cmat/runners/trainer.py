@@ -18,16 +18,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from cmat.algorithms.base import Algorithm, Batch, Params
-from cmat.algorithms.cmat import CMAT
+from cmat.algorithms import build_algorithm
+from cmat.algorithms.base import Batch, Params, Algorithm
 from cmat.algorithms import ppo as ppo_lib
 from cmat.config import TrainConfig
 from cmat.envs import make_env
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
 from cmat.errors import CmatError
-
-ALGORITHMS: dict[str, Callable[..., Algorithm]] = {"cmat": CMAT.build}
-
 
 @flax.struct.dataclass
 class TrainerState:
@@ -58,6 +55,7 @@ class Transition(NamedTuple):
     won: jax.Array
     finished_return: jax.Array
     """Return of the episode this step ended (0 where it ended none)."""
+    extras: Any
 
 
 @dataclass(frozen=True)
@@ -75,10 +73,8 @@ class TrainSetup:
 
 
 def build_setup(config: TrainConfig) -> TrainSetup:
-    if config.algo not in ALGORITHMS:
-        raise CmatError(f"unknown algorithm {config.algo!r}; available: {', '.join(ALGORITHMS)}")
     env = make_env(config.env, **config.env_kwargs)
-    algorithm = ALGORITHMS[config.algo](config.network, env.spec)
+    algorithm = build_algorithm(config.algo, config.network, env.spec)
     optimizer = optax.chain(
         optax.clip_by_global_norm(config.ppo.max_grad_norm),
         optax.adam(config.ppo.lr, eps=config.ppo.adam_eps),
@@ -139,6 +135,7 @@ def collect_rollout(setup: TrainSetup, state: TrainerState) -> tuple[TrainerStat
             done=timestep.done,
             won=timestep.won,
             finished_return=jnp.where(timestep.done, running, 0.0),
+            extras=acted.extras,
         )
         state = state.replace(
             env_state=env_state,
@@ -194,6 +191,7 @@ def make_batch(
         values=flat(rollout.value),
         advantages=flat(advantages),
         targets=flat(targets),
+        extras=jax.tree.map(flat, rollout.extras),
     )
     return value_norm, batch
 
@@ -231,7 +229,8 @@ def update_step(setup: TrainSetup, state: TrainerState) -> tuple[TrainerState, d
     state, rollout = collect_rollout(setup, state)
     value_norm, batch = make_batch(setup, state, rollout)
     rng, update_key = jax.random.split(state.rng)
-    params, opt_state, metrics = optimise(setup, state.params, state.opt_state, batch, update_key)
+    optimise_fn = getattr(setup.algorithm, "optimise", optimise)
+    params, opt_state, metrics = optimise_fn(setup, state.params, state.opt_state, batch, update_key)
     target_params = optax.incremental_update(
         params, state.target_params, setup.config.ppo.target_tau
     )
