@@ -46,7 +46,7 @@ class CMAT:
         return greedy_action(output.action_params, self.network.discrete)
 
     def value(self, params: Params, obs: jax.Array) -> jax.Array:
-        return self.network.apply(params, obs, method=CMATNetwork.value)
+        return self.network.apply(params, obs, method="value")
 
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig

@@ -83,11 +83,14 @@ def build_setup(config: TrainConfig) -> TrainSetup:
 
 
 def init_state(setup: TrainSetup, rng: jax.Array) -> TrainerState:
+    """A fresh state; the environment state is made strongly typed, as a step returns it, so
+    the chunk program compiles once (SMAX's reset yields weakly typed leaves)."""
     rng, init_key, reset_key = jax.random.split(rng, 3)
     env_state, timestep = jax.vmap(setup.env.reset)(
         jax.random.split(reset_key, setup.config.num_envs)
     )
     params = setup.algorithm.init(init_key, timestep.obs[0], timestep.action_mask[0])
+    env_state = jax.tree.map(lambda x: jnp.asarray(x, dtype=x.dtype), env_state)
     return TrainerState(
         params=params,
         target_params=params,

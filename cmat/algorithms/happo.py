@@ -1,0 +1,204 @@
+"""HAPPO (Kuba et al. 2022; HARL, Zhong et al. 2024): heterogeneous agents updated one by one.
+
+Every agent has its own actor (separate parameters, input o_i); the centralized critic is MAPPO's.
+Each update draws a random order i_1..i_n. Agent i_m runs PPO epochs × minibatches on
+−E[min(r·M·A, clip(r, 1−ε, 1+ε)·M·A)] − c_ent·H, with its own ratio r = π_{i_m} / π_{i_m},old
+and the compounding factor M = Π_{k<m} π_{i_k}^new / π_{i_k}^old of the agents updated before
+it, on the same samples and held constant; then the critic is trained on the value loss.
+
+The trainer's one optimiser serves all phases: each phase moves only its own parameters and their
+Adam moments, and every phase restarts from the update's step count, so each actor and the critic
+keep their own moments and step count exactly as HARL's separate optimisers do (every phase takes
+the same epochs × minibatches steps).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Callable
+
+import distrax
+import jax
+import jax.numpy as jnp
+import optax
+
+from cmat.algorithms.base import Batch, Params
+from cmat.algorithms.distributions import action_distribution
+from cmat.algorithms.mappo import MAPPO
+from cmat.algorithms.ppo import clipped_surrogate_loss
+from cmat.config import PPOConfig
+from cmat.runners import trainer
+
+Loss = Callable[[Params, Batch, PPOConfig], tuple[jax.Array, dict[str, jax.Array]]]
+
+
+def compounding_factors(
+    new_log_probs: jax.Array, old_log_probs: jax.Array, order: jax.Array
+) -> jax.Array:
+    """M of every agent [..., n]: Π π_j^new / π_j^old over the agents j before it in `order`.
+
+    Agents not updated yet carry new = old, so their ratio is exactly 1.
+    """
+    log_ratios = (new_log_probs - old_log_probs)[..., order]
+    before = jnp.cumsum(log_ratios, axis=-1)[..., :-1]
+    before = jnp.concatenate([jnp.zeros_like(log_ratios[..., :1]), before], axis=-1)
+    return jnp.exp(before)[..., jnp.argsort(order)]
+
+
+def select_state(
+    optimizer: optax.GradientTransformation, mask: Params, new: Any, old: Any, steps_from_new: bool
+) -> Any:
+    """Optimiser state: its param-shaped leaves (Adam moments) from `new` where `mask` holds and
+    from `old` elsewhere; its other leaves (step counts) from `new` or `old`."""
+    choose = optax.tree_utils.tree_map_params(
+        optimizer, lambda _, m: m, new, mask,
+        transform_non_params=lambda _: jnp.asarray(steps_from_new),
+    )
+    return jax.tree.map(jnp.where, choose, new, old)
+
+
+def restricted(
+    optimizer: optax.GradientTransformation, mask: Params
+) -> optax.GradientTransformation:
+    """`optimizer` moving only the params where `mask` holds: the others and their moments stay
+    bit-identical (a zero gradient alone would still move them through Adam's momentum)."""
+
+    def update(grads: Params, state: Any, params: Params | None = None) -> tuple[Params, Any]:
+        updates, new_state = optimizer.update(grads, state, params)
+        updates = jax.tree.map(lambda m, u: jnp.where(m, u, jnp.zeros_like(u)), mask, updates)
+        return updates, select_state(optimizer, mask, new_state, state, steps_from_new=True)
+
+    return optax.GradientTransformation(optimizer.init, update)
+
+
+@dataclass(frozen=True)
+class Phase:
+    """All the trainer's `optimise` reads of an algorithm: the loss it minimises."""
+
+    loss: Loss
+
+
+def train_phase(
+    setup: trainer.TrainSetup, loss: Loss, mask: Params,
+    params: Params, opt_state: Any, batch: Batch, rng: jax.Array,
+) -> tuple[Params, Any, dict[str, jax.Array]]:
+    """The trainer's PPO epochs × minibatches on `loss`, moving only the params `mask` selects."""
+    phase = dataclasses.replace(
+        setup, algorithm=Phase(loss), optimizer=restricted(setup.optimizer, mask)
+    )
+    return trainer.optimise(phase, params, opt_state, batch, rng)
+
+
+@dataclass(frozen=True)
+class HAPPO(MAPPO):
+    """Params {"actor": the n actors stacked on a leading agent axis, "critic": ...}.
+
+    `loss` (MAPPO's) is the simultaneous objective, every M = 1; the trainer calls `optimise`.
+    """
+
+    def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
+        """Each actor initialised on its own (a vmapped orthogonal init hangs XLA:CPU)."""
+        keys = jax.random.split(key, self.num_agents + 1)
+        actors = [
+            self.actor.init(keys[i], obs[i], action_mask[i]) for i in range(self.num_agents)
+        ]
+        return {
+            "actor": jax.tree.map(lambda *leaves: jnp.stack(leaves), *actors),
+            "critic": self.critic.init(keys[-1], obs),
+        }
+
+    def policy(
+        self, params: Params, obs: jax.Array, action_mask: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
+        """Agent i's own actor on o_i: action parameters [..., n, A] and log-stds [n, A]."""
+        apply = jax.vmap(self.actor.apply, in_axes=(0, -2, -2), out_axes=(-2, 0))
+        return apply(params["actor"], obs, action_mask)
+
+    def agent_distribution(
+        self, params: Params, agent: jax.Array, batch: Batch
+    ) -> distrax.Distribution:
+        """One agent's distributions [B] on the samples of a batch."""
+        actor = jax.tree.map(lambda x: x[agent], params["actor"])
+        action_params, log_std = self.actor.apply(
+            actor, batch.obs[:, agent], batch.action_mask[:, agent]
+        )
+        return action_distribution(action_params, log_std, self.discrete)
+
+    def agent_loss(
+        self, agent: jax.Array, params: Params, batch: Batch, ppo: PPOConfig
+    ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """One agent's clipped surrogate and entropy; `batch.advantages` already hold M·A."""
+        distribution = self.agent_distribution(params, agent, batch)
+        log_ratio = distribution.log_prob(batch.actions[:, agent]) - batch.log_probs[:, agent]
+        policy_loss, diagnostics = clipped_surrogate_loss(
+            log_ratio, batch.advantages, ppo.clip_eps
+        )
+        entropy = jnp.mean(distribution.entropy())
+        total = policy_loss - ppo.ent_coef * entropy
+        return total, {"policy_loss": policy_loss, "entropy": entropy, **diagnostics}
+
+    def critic_phase_loss(
+        self, params: Params, batch: Batch, ppo: PPOConfig
+    ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        critic_loss = self.critic_loss(params, batch, ppo)
+        return ppo.value_coef * critic_loss, {"value_loss": critic_loss}
+
+    def agent_mask(self, params: Params, agent: jax.Array) -> Params:
+        """True on `agent`'s actor parameters only."""
+        is_agent = jnp.arange(self.num_agents) == agent
+        return {
+            "actor": jax.tree.map(
+                lambda x: is_agent.reshape(-1, *(1,) * (x.ndim - 1)), params["actor"]
+            ),
+            "critic": jax.tree.map(lambda _: jnp.asarray(False), params["critic"]),
+        }
+
+    def optimise(
+        self, setup: trainer.TrainSetup, params: Params, opt_state: Any, batch: Batch,
+        rng: jax.Array,
+    ) -> tuple[Params, Any, dict[str, jax.Array]]:
+        """The sequential update (module docstring): agents in a random order, then the critic."""
+        keys = jax.random.split(rng, self.num_agents + 2)
+        order = jax.random.permutation(keys[0], self.num_agents)
+        everywhere = jax.tree.map(lambda _: jnp.asarray(True), params)
+        critic_only = {
+            "actor": jax.tree.map(lambda _: jnp.asarray(False), params["actor"]),
+            "critic": jax.tree.map(lambda _: jnp.asarray(True), params["critic"]),
+        }
+
+        def restart(state: Any) -> Any:
+            return select_state(
+                setup.optimizer, everywhere, state, opt_state, steps_from_new=False
+            )
+
+        def update_agent(carry: tuple, step: tuple[jax.Array, jax.Array]) -> tuple[tuple, dict]:
+            params, state, new_log_probs = carry
+            agent, key = step
+            factor = compounding_factors(new_log_probs, batch.log_probs, order)[:, agent]
+            params, state, metrics = train_phase(
+                setup, partial(self.agent_loss, agent), self.agent_mask(params, agent),
+                params, restart(state), batch._replace(advantages=factor * batch.advantages), key,
+            )
+            updated = self.agent_distribution(params, agent, batch)
+            new_log_probs = new_log_probs.at[:, agent].set(
+                updated.log_prob(batch.actions[:, agent])
+            )
+            return (params, state, new_log_probs), metrics
+
+        (params, state, _), agent_metrics = jax.lax.scan(
+            update_agent, (params, opt_state, batch.log_probs), (order, keys[2:])
+        )
+        params, state, critic_metrics = train_phase(
+            setup, self.critic_phase_loss, critic_only, params, restart(state), batch, keys[1]
+        )
+        metrics = jax.tree.map(jnp.mean, agent_metrics)
+        phases = self.num_agents + 1
+        return params, state, {
+            **metrics,
+            "value_loss": critic_metrics["value_loss"],
+            "loss": metrics["loss"] + critic_metrics["loss"],
+            "grad_norm": (jnp.sum(agent_metrics["grad_norm"]) + critic_metrics["grad_norm"])
+            / phases,
+        }

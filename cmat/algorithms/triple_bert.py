@@ -1,0 +1,25 @@
+"""Triple-BERT (Zhao et al. 2025) as the paper's baseline: the team as one multi-action agent whose
+per-agent factors see no consensus.
+
+The joint policy is Π_i π_i(a_i | ô_i), trained exactly as CMAT: single-agent PPO on the joint
+ratio Π_i π_i / π_i,old (paper eq. ratio) with a team value. Acting and the loss are CMAT's;
+only the network differs (cmat.networks.triple_bert).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from cmat.algorithms.cmat import CMAT
+from cmat.config import NetworkConfig
+from cmat.envs.protocol import EnvSpec
+from cmat.networks.triple_bert import TripleBERTNetwork
+
+
+@dataclass(frozen=True)
+class TripleBERT(CMAT):
+    network: TripleBERTNetwork  # type: ignore[assignment]
+
+    @classmethod
+    def build(cls, config: NetworkConfig, spec: EnvSpec) -> "TripleBERT":
+        return cls(TripleBERTNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))

@@ -1,0 +1,58 @@
+"""Feed-forward actor and centralized critic of the MAPPO and HAPPO baselines.
+
+Both follow the reference MLP base (Yu et al. 2022; HARL): LayerNorm on the input, then two
+hidden layers of `hidden` units, each dense → ReLU → LayerNorm, orthogonal init with the ReLU
+gain. Arrays carry any number of leading batch axes.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import flax.linen as nn
+
+from cmat.networks.cmat import MASKED_LOGIT
+from cmat.networks.layers import dense
+
+
+class MLPTrunk(nn.Module):
+    hidden: int
+    layers: int = 2
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        x = nn.LayerNorm()(x)
+        for _ in range(self.layers):
+            x = nn.LayerNorm()(nn.relu(dense(self.hidden)(x)))
+        return x
+
+
+class MLPActor(nn.Module):
+    """One agent's policy from its input vector [..., in] -> (action params [..., A], log_std)."""
+
+    hidden: int
+    action_dim: int
+    discrete: bool
+    init_gain: float
+
+    @nn.compact
+    def __call__(self, x: jax.Array, action_mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+        action_params = dense(self.action_dim, self.init_gain)(MLPTrunk(self.hidden)(x))
+        log_std = self.param(
+            "log_std", nn.initializers.zeros, (0 if self.discrete else self.action_dim,)
+        )
+        if self.discrete:
+            action_params = jnp.where(action_mask, action_params, MASKED_LOGIT)
+        return action_params, log_std
+
+
+class MLPCritic(nn.Module):
+    """V(s) of the team, with the global state s = all agents' observations concatenated."""
+
+    hidden: int
+
+    @nn.compact
+    def __call__(self, obs: jax.Array) -> jax.Array:
+        """obs [..., n, obs_dim] -> [...]"""
+        state = obs.reshape(*obs.shape[:-2], obs.shape[-2] * obs.shape[-1])
+        return dense(1, 1.0)(MLPTrunk(self.hidden)(state))[..., 0]

@@ -1,0 +1,201 @@
+"""The Triple-BERT, MAPPO and HAPPO baselines: training through the shared trainer, their losses,
+HAPPO's sequential update and compounding factor."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from optax.tree_utils import tree_get
+
+from cmat.algorithms import build_algorithm
+from cmat.algorithms.base import Batch
+from cmat.algorithms.happo import HAPPO, compounding_factors, train_phase
+from cmat.algorithms.mappo import MAPPO
+from cmat.config import NetworkConfig, PPOConfig, load_config
+from cmat.envs.protocol import EnvSpec
+from cmat.runners import trainer as trainer_lib
+from cmat.runners.trainer import Trainer
+from test_training import TINY, fixed_batch, numpy_cmat_loss
+
+SPEC = EnvSpec("test", 3, 5, 4, True, 10, False)
+NETWORK = NetworkConfig(n_embd=16, n_head=2)
+LOSS_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "loss")
+
+
+def rows(tree: dict, agent: int) -> list[np.ndarray]:
+    return [np.asarray(leaf[agent]) for leaf in jax.tree.leaves(tree["actor"])]
+
+
+def differ(before: list, after: list) -> bool:
+    return any(not np.array_equal(a, b) for a, b in zip(before, after))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def quick_compiles() -> Iterator[None]:
+    """These programs run for milliseconds, so compiling is nearly all their cost: skipping XLA's
+    optimisations halves it (the flag is restored after this module)."""
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)
+    yield
+    jax.config.update("jax_disable_most_optimizations", previous)
+
+
+@pytest.fixture(scope="module", params=[
+    (algo, env) for algo in ("mappo", "happo", "triple_bert") for env in ("matrix:fig1", "smax:3m")
+], ids=lambda case: "-".join(case))
+def trained(request: pytest.FixtureRequest) -> tuple:
+    """Params before and after two updates in one chunk, and the chunk's metrics."""
+    algo, env = request.param
+    trainer = Trainer(load_config(overrides=[
+        f"algo={algo}", f"env={env}", "total_steps=160", "log_interval=2", *TINY,
+    ]))
+    state = trainer.init()
+    before = jax.tree.map(np.asarray, state.params)
+    state, metrics = trainer.train_chunk(state)
+    return before, state.params, metrics
+
+
+def test_baseline_trains_through_the_shared_trainer(trained: tuple) -> None:
+    before, after, metrics = trained
+    leaves = list(zip(jax.tree.leaves(before), jax.tree.leaves(after)))
+    assert sum(differ([a], [b]) for a, b in leaves) > len(leaves) // 2
+    for key in LOSS_METRICS:
+        assert np.all(np.isfinite(metrics[key])), key
+    assert metrics["approx_kl"][0] > 0.0
+    assert metrics["env_steps"][0] == 160
+
+
+def test_compounding_factor_matches_a_numpy_reference() -> None:
+    rng = np.random.default_rng(0)
+    new, old = rng.normal(size=(2, 6, 4)) * 0.3
+    order = np.array([2, 0, 3, 1])
+    factors = compounding_factors(jnp.asarray(new), jnp.asarray(old), jnp.asarray(order))
+    expected = np.ones((6, 4))
+    running = np.ones(6)
+    for agent in order:
+        expected[:, agent] = running
+        running = running * np.exp(new[:, agent]) / np.exp(old[:, agent])
+    np.testing.assert_allclose(factors, expected, rtol=1e-5)
+    assert np.all(np.asarray(factors)[:, order[0]] == 1.0)
+
+
+@pytest.fixture(scope="module")
+def built() -> dict[str, tuple]:
+    """Each baseline over SPEC's three agents, with its initial params (initialised once)."""
+    batch = fixed_batch()
+    cases = {}
+    for algo in ("mappo", "happo", "triple_bert"):
+        algorithm = build_algorithm(algo, NETWORK, SPEC)
+        init = jax.jit(algorithm.init)
+        cases[algo] = algorithm, init(jax.random.PRNGKey(0), batch.obs[0], batch.action_mask[0])
+    return cases
+
+
+@pytest.fixture(scope="module")
+def happo_setup(built: dict[str, tuple]) -> tuple[trainer_lib.TrainSetup, HAPPO, dict, Batch]:
+    """A trainer setup whose algorithm is HAPPO over SPEC, its params and a fixed batch."""
+    setup = trainer_lib.build_setup(load_config(overrides=["algo=happo", *TINY]))
+    algorithm, params = built["happo"]
+    return dataclasses.replace(setup, algorithm=algorithm), algorithm, params, fixed_batch()
+
+
+def test_happo_phase_moves_only_its_agent_and_keeps_the_others_moments(happo_setup: tuple) -> None:
+    setup, algorithm, params, batch = happo_setup
+    state = setup.optimizer.init(params)
+
+    @jax.jit
+    def phase(agent: jax.Array, params: dict, state: object, key: jax.Array) -> tuple:
+        loss = partial(algorithm.agent_loss, agent)
+        mask = algorithm.agent_mask(params, agent)
+        return train_phase(setup, loss, mask, params, state, batch, key)
+
+    after_1, state_1, _ = phase(1, params, state, jax.random.PRNGKey(1))
+    after_0, state_0, _ = phase(0, after_1, state_1, jax.random.PRNGKey(2))
+    for agent, before, after in [(1, params, after_1), (0, after_1, after_0)]:
+        for other in {0, 1, 2} - {agent}:
+            for a, b in zip(rows(before, other), rows(after, other)):
+                np.testing.assert_array_equal(a, b)
+        assert differ(rows(before, agent), rows(after, agent))
+        for a, b in zip(jax.tree.leaves(before["critic"]), jax.tree.leaves(after["critic"])):
+            np.testing.assert_array_equal(a, b)
+    for moment in ("mu", "nu"):
+        moments_1, moments_0 = tree_get(state_1, moment), tree_get(state_0, moment)
+        for a, b in zip(rows(moments_1, 1), rows(moments_0, 1)):
+            np.testing.assert_array_equal(a, b)
+        assert all(np.all(np.asarray(leaf[2]) == 0) for leaf in jax.tree.leaves(moments_0["actor"]))
+
+
+def test_happo_update_trains_every_actor_then_the_critic_with_own_step_counts(
+    happo_setup: tuple,
+) -> None:
+    setup, algorithm, params, batch = happo_setup
+    state = setup.optimizer.init(params)
+    optimise = jax.jit(lambda p, s, key: algorithm.optimise(setup, p, s, batch, key))
+    new_params, new_state, metrics = optimise(params, state, jax.random.PRNGKey(3))
+    for agent in range(SPEC.num_agents):
+        assert differ(rows(params, agent), rows(new_params, agent)), agent
+    assert differ(jax.tree.leaves(params["critic"]), jax.tree.leaves(new_params["critic"]))
+    ppo = setup.config.ppo
+    assert int(tree_get(new_state, "count")) == ppo.epochs * ppo.num_minibatches
+    assert all(np.isfinite(float(metrics[key])) for key in LOSS_METRICS)
+
+
+def test_triple_bert_permutes_distributions_with_agents_and_keeps_the_value(built: dict) -> None:
+    algorithm, params = built["triple_bert"]
+    batch = fixed_batch(seed=2)
+    permutation = np.array([2, 0, 1])
+    apply = jax.jit(lambda o, m: algorithm.network.apply(params, o, m))
+    original = apply(batch.obs, batch.action_mask)
+    permuted = apply(batch.obs[:, permutation], batch.action_mask[:, permutation])
+    np.testing.assert_allclose(permuted.value, original.value, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        permuted.action_params, original.action_params[:, permutation], rtol=1e-5, atol=1e-5
+    )
+    value = jax.jit(jax.vmap(algorithm.value, in_axes=(None, 0)))(params, batch.obs)
+    np.testing.assert_allclose(value, original.value, rtol=1e-5, atol=1e-6)
+
+
+def test_triple_bert_loss_is_the_joint_ratio_objective_on_a_fixed_batch(built: dict) -> None:
+    algorithm, params = built["triple_bert"]
+    batch = fixed_batch()
+    ppo = PPOConfig(clip_eps=0.2)
+    total, metrics = jax.jit(algorithm.loss, static_argnums=2)(params, batch, ppo)
+    output = jax.jit(algorithm.network.apply)(params, batch.obs, batch.action_mask)
+    logits, values = (np.asarray(x, np.float64) for x in (output.action_params, output.value))
+    expected = numpy_cmat_loss(logits, values, batch, ppo)
+    for key in ("policy_loss", "entropy", "value_loss"):
+        assert float(metrics[key]) == pytest.approx(expected[key], rel=1e-4, abs=1e-5), key
+    assert float(total) == pytest.approx(expected["total"], rel=1e-4, abs=1e-5)
+
+
+@pytest.mark.parametrize("algo", ["mappo", "happo", "triple_bert"])
+def test_masked_actions_are_never_sampled(algo: str, built: dict) -> None:
+    algorithm, params = built[algo]
+    batch = fixed_batch(seed=3, size=64)
+    mask = np.asarray(batch.action_mask)
+    act = jax.jit(jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0)))
+    acted = act(params, batch.obs, batch.action_mask, jax.random.split(jax.random.PRNGKey(1), 64))
+    assert np.take_along_axis(mask, np.asarray(acted.actions)[..., None], -1).all()
+    assert np.all(np.isfinite(np.asarray(acted.log_probs)))
+    greedy = jax.jit(jax.vmap(algorithm.greedy, in_axes=(None, 0, 0)))
+    chosen = greedy(params, batch.obs, batch.action_mask)
+    assert np.take_along_axis(mask, np.asarray(chosen)[..., None], -1).all()
+
+
+@pytest.mark.parametrize("algo", ["mappo", "happo"])
+def test_identical_observations_give_each_agent_its_own_distribution(
+    algo: str, built: dict
+) -> None:
+    """MAPPO's shared actor tells agents apart by the one-hot id; HAPPO's actors are separate."""
+    algorithm, params = built[algo]
+    assert isinstance(algorithm, MAPPO)
+    obs = jnp.broadcast_to(jnp.arange(5.0), (3, 5))
+    logits = np.asarray(jax.jit(algorithm.policy)(params, obs, jnp.ones((3, 4), bool))[0])
+    for i, j in [(0, 1), (0, 2), (1, 2)]:
+        assert np.abs(logits[i] - logits[j]).max() > 1e-6
