@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import argparse
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from cmat.config import load_config
+from cmat.experiments.matrix_games import train_and_count_optimum
 from cmat.runners.trainer import Trainer
 
 
@@ -23,12 +22,7 @@ def fig1_optimum_count(tau: float, steps: int) -> int:
         "env=matrix:fig1", f"total_steps={steps}", "num_envs=16", "rollout_length=25",
         "ppo.epochs=5", "seeds=10", f"log_interval={steps // 400}", f"ppo.target_tau={tau}",
     ])
-    trainer = Trainer(config)
-    state, _ = trainer.train_chunk(trainer.init())
-    greedy = jax.vmap(trainer.setup.algorithm.greedy, in_axes=(0, None, None))(
-        state.params, jnp.eye(2), jnp.ones((2, 2), bool)
-    )
-    return int(np.sum(np.all(np.asarray(greedy) == 1, axis=-1)))
+    return train_and_count_optimum(config, optimum=(1, 1))[0]
 
 
 def smax_result(tau: float, steps: int, seeds: int) -> dict[str, np.ndarray]:

@@ -13,6 +13,7 @@ from cmat.algorithms.base import Batch
 from cmat.algorithms.cmat import CMAT
 from cmat.config import NetworkConfig, PPOConfig, load_config
 from cmat.envs.protocol import EnvSpec
+from cmat.experiments.matrix_games import train_and_count_optimum
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import Trainer
 
@@ -129,15 +130,8 @@ def test_fig1_cmat_reaches_the_optimum_in_at_least_9_of_10_seeds() -> None:
         "env=matrix:fig1", "total_steps=12000", "num_envs=16", "rollout_length=25",
         "ppo.epochs=5", "seeds=10", "log_interval=30", "eval_episodes=2",
     ])
-    trainer = Trainer(config)
-    state, _ = trainer.train_chunk(trainer.init())
-    greedy = jax.vmap(trainer.setup.algorithm.greedy, in_axes=(0, None, None))(
-        state.params, jnp.eye(2), jnp.ones((2, 2), bool)
-    )
-    at_optimum = np.all(np.asarray(greedy) == 1, axis=-1)
-    assert at_optimum.sum() >= 9, greedy
-    returns = trainer.evaluate(state, 2)["episode_return"]
-    assert np.sum(returns == 100.0) == at_optimum.sum()
+    at_optimum, joint = train_and_count_optimum(config, optimum=(1, 1))
+    assert at_optimum >= 9, joint
 
 
 def test_smax_3m_improves_on_its_starting_return() -> None:

@@ -1,0 +1,101 @@
+"""PMAT (Hu et al. 2025): MAT whose decision order is sampled from a learned Plackett-Luce model.
+
+A scoring MLP on Ô gives one score s_i per agent; the order σ is drawn without replacement,
+P(σ) = Π_k exp(s_σ(k)) / Σ_{j≥k} exp(s_σ(j)), and MAT's decoder acts along it. The order is
+stored with the transition, so training scores the actions along the order they were sampled
+in; log P(σ) gets its own clipped PPO term with the team advantage, weighted by
+`ppo.order_loss_coef`, added to MAT's loss (eq. mat).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from cmat.algorithms.base import ActResult, Batch, Params
+from cmat.algorithms.mat import MAT
+from cmat.algorithms.ppo import clipped_surrogate_loss
+from cmat.config import NetworkConfig, PPOConfig
+from cmat.envs.protocol import EnvSpec
+from cmat.networks.mat import OrderScorer
+
+
+class OrderSample(NamedTuple):
+    """What acting stores for the loss: the decision order and its log-probability."""
+
+    order: jax.Array
+    """[n] agent acting at each decoding position."""
+    log_prob: jax.Array
+    """[] log P(order) under the collecting parameters."""
+
+
+def order_log_prob(scores: jax.Array, order: jax.Array) -> jax.Array:
+    """log P(σ) = Σ_k [s_σ(k) − logsumexp(s_σ(k..n))] over the last axis."""
+    ordered = jnp.take_along_axis(scores, order, axis=-1)
+    remaining = jax.lax.cumlogsumexp(ordered, axis=ordered.ndim - 1, reverse=True)
+    return jnp.sum(ordered - remaining, axis=-1)
+
+
+def sample_order(scores: jax.Array, key: jax.Array) -> jax.Array:
+    """A Plackett-Luce order, exactly, by Gumbel-top-k: sort s_i + Gumbel noise, descending."""
+    return jnp.argsort(-(scores + jax.random.gumbel(key, scores.shape)), axis=-1)
+
+
+@dataclass(frozen=True)
+class PMAT:
+    mat: MAT
+    scorer: OrderScorer
+
+    @classmethod
+    def build(cls, config: NetworkConfig, spec: EnvSpec) -> "PMAT":
+        return cls(MAT.build(config, spec), OrderScorer(config.n_embd, config.init_gain))
+
+    def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
+        mat_key, scorer_key = jax.random.split(key)
+        mat = self.mat.init(mat_key, obs, action_mask)
+        encoded, _ = self.mat.encode(mat, obs)
+        return {"mat": mat, "scorer": self.scorer.init(scorer_key, encoded)}
+
+    def scores(self, params: Params, obs: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Ô, the team value and the agents' order scores."""
+        encoded, value = self.mat.encode(params["mat"], obs)
+        return encoded, value, self.scorer.apply(params["scorer"], encoded)
+
+    def act(
+        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
+    ) -> ActResult:
+        order_key, action_key = jax.random.split(key)
+        encoded, value, scores = self.scores(params, obs)
+        order = sample_order(scores, order_key)
+        actions, log_probs = self.mat.decode(params["mat"], encoded, action_mask, order, action_key)
+        sampled = OrderSample(order, order_log_prob(scores, order))
+        return ActResult(actions, log_probs, value, sampled)
+
+    def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
+        """Agents in descending score order, each taking its most likely action."""
+        encoded, _, scores = self.scores(params, obs)
+        order = jnp.argsort(-scores)
+        return self.mat.decode(params["mat"], encoded, action_mask, order, None)[0]
+
+    def value(self, params: Params, obs: jax.Array) -> jax.Array:
+        return self.mat.value(params["mat"], obs)
+
+    def loss(
+        self, params: Params, batch: Batch, ppo: PPOConfig
+    ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """MAT's loss along the sampled orders plus the clipped order term."""
+        sampled: OrderSample = batch.extras
+        total, metrics, output = self.mat.loss_along(params["mat"], batch, sampled.order, ppo)
+        scores = self.scorer.apply(params["scorer"], output.encoded)
+        order_loss, diagnostics = clipped_surrogate_loss(
+            order_log_prob(scores, sampled.order) - sampled.log_prob, batch.advantages, ppo.clip_eps
+        )
+        return total + ppo.order_loss_coef * order_loss, {
+            **metrics,
+            "order_loss": order_loss,
+            "order_approx_kl": diagnostics["approx_kl"],
+            "order_clip_frac": diagnostics["clip_frac"],
+        }

@@ -1,0 +1,24 @@
+"""Where a trained policy ends on a one-step matrix game: the paper's Fig. 1 argument, measured."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from cmat.config import TrainConfig
+from cmat.runners.trainer import Trainer
+
+
+def greedy_joint_actions(trainer: Trainer, params: object) -> np.ndarray:
+    """[seeds, agents] greedy joint action of every seed (matrix games have one state)."""
+    _, timestep = trainer.setup.env.reset(jax.random.PRNGKey(0))
+    greedy = jax.vmap(trainer.setup.algorithm.greedy, in_axes=(0, None, None))
+    return np.asarray(greedy(params, timestep.obs, timestep.action_mask))
+
+
+def train_and_count_optimum(config: TrainConfig, optimum: tuple[int, ...]) -> tuple[int, np.ndarray]:
+    """Train every seed of `config` in one chunk; how many end with the greedy joint `optimum`."""
+    trainer = Trainer(config)
+    state, _ = trainer.train_chunk(trainer.init())
+    joint = greedy_joint_actions(trainer, state.params)
+    return int(np.sum(np.all(joint == np.asarray(optimum), axis=-1))), joint

@@ -1,0 +1,217 @@
+"""The Multi-Agent Transformer network (Wen et al. 2022) as in the official PKU-MARL code.
+
+O --Encoder--> Ô --per-agent head--> V(ô_i);  V(O) = mean_i V(ô_i)  (paper text after eq. mat)
+a^σ(k-1) --embed--> causal self-attention --> ô^σ(k) queries it --> π^σ(k)(· | O, a^σ(<k))
+
+The decoder runs along a decision order σ, a permutation of the agents (the identity for MAT, a
+sampled one for PMAT): position k acts for agent σ(k), and as in the reference decode block its
+query and residual are that agent's ô^σ(k), attending causally to the features of the action
+tokens a^σ(1..k-1) (a start token first). Acting iterates the positions with a key/value cache;
+training is one causal pass over the shifted actions, the same computation.
+
+All methods are per team (agents on the leading axis); batch them with `jax.vmap`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import flax.linen as nn
+
+from cmat.algorithms.distributions import action_distribution, greedy_action
+from cmat.config import NetworkConfig
+from cmat.networks.cmat import MASKED_LOGIT, ActionHead
+from cmat.networks.layers import FeedForward, MultiHeadAttention, ObservationEncoder, dense
+
+KeyValues = tuple[jax.Array, jax.Array]
+
+
+class BlockCache(NamedTuple):
+    """Keys/values of the positions decoded so far, for both attentions of a decode block."""
+
+    tokens: KeyValues
+    features: KeyValues
+
+
+class MATOutput(NamedTuple):
+    """Teacher-forced outputs of one team, agents in index order."""
+
+    action_params: jax.Array
+    """[n, A]: masked logits (discrete) or Gaussian means (continuous)."""
+    log_std: jax.Array
+    """[A] learned state-independent log-std (continuous); empty for discrete heads."""
+    value: jax.Array
+    """[] team value V(O) = mean_i V(ô_i)."""
+    encoded: jax.Array
+    """[n, d] the encoder output Ô."""
+
+
+def causal_attention(
+    attention: MultiHeadAttention, queries: jax.Array, memory: jax.Array
+) -> jax.Array:
+    """Position k of `queries` [..., L, d] attends to positions 0..k of `memory` [..., L, d]."""
+    length = queries.shape[-2]
+    keys, values = attention.project_memory(memory)
+    heads = nn.dot_product_attention(
+        attention.split_heads(attention.query(queries)), keys, values,
+        mask=jnp.tril(jnp.ones((length, length), dtype=bool)),
+    )
+    return attention.out(heads.reshape(*queries.shape[:-1], attention.n_embd))
+
+
+def extend(cache: KeyValues | None, new: KeyValues) -> KeyValues:
+    if cache is None:
+        return new
+    return (
+        jnp.concatenate([cache[0], new[0]], axis=-3),
+        jnp.concatenate([cache[1], new[1]], axis=-3),
+    )
+
+
+class MATDecodeBlock(nn.Module):
+    """The reference decode block, post-LayerNorm:
+
+    x = LN(t + CausalAttn(t, t)),  y = LN(ô + CausalAttn(query=ô, keys/values=x)),
+    output LN(y + MLP(y)), where t are the action tokens and ô the agents' encodings.
+    """
+
+    n_embd: int
+    n_head: int
+
+    def setup(self) -> None:
+        self.token_attention = MultiHeadAttention(self.n_embd, self.n_head)
+        self.agent_attention = MultiHeadAttention(self.n_embd, self.n_head)
+        self.feed_forward = FeedForward(self.n_embd)
+        self.norms = [nn.LayerNorm() for _ in range(3)]
+
+    def step(
+        self, token: jax.Array, agent: jax.Array, cache: BlockCache | None
+    ) -> tuple[jax.Array, BlockCache]:
+        """One position: token and agent [1, d], given the cache of the positions before it."""
+        token_kv = extend(
+            None if cache is None else cache.tokens, self.token_attention.project_memory(token)
+        )
+        x = self.norms[0](token + self.token_attention.attend(token, *token_kv))
+        feature_kv = extend(
+            None if cache is None else cache.features, self.agent_attention.project_memory(x)
+        )
+        y = self.norms[1](agent + self.agent_attention.attend(agent, *feature_kv))
+        return self.norms[2](y + self.feed_forward(y)), BlockCache(token_kv, feature_kv)
+
+    def __call__(self, tokens: jax.Array, agents: jax.Array) -> jax.Array:
+        """All positions at once (causal masks); equals iterating `step`."""
+        x = self.norms[0](tokens + causal_attention(self.token_attention, tokens, tokens))
+        y = self.norms[1](agents + causal_attention(self.agent_attention, agents, x))
+        return self.norms[2](y + self.feed_forward(y))
+
+
+class AgentValueHead(nn.Module):
+    """V(ô_i) for every agent: the reference encoder head (Linear, GELU, LayerNorm, Linear)."""
+
+    n_embd: int
+    init_gain: float
+
+    @nn.compact
+    def __call__(self, encoded: jax.Array) -> jax.Array:
+        hidden = nn.LayerNorm()(nn.gelu(dense(self.n_embd)(encoded)))
+        return dense(1, self.init_gain)(hidden)[..., 0]
+
+
+class OrderScorer(nn.Module):
+    """PMAT's scoring MLP: one Plackett-Luce score per agent from ô_i (Hu et al. 2025)."""
+
+    n_embd: int
+    init_gain: float
+
+    @nn.compact
+    def __call__(self, encoded: jax.Array) -> jax.Array:
+        return dense(1, self.init_gain)(nn.gelu(dense(self.n_embd)(encoded)))[..., 0]
+
+
+class MATNetwork(nn.Module):
+    """MAT actor-critic over one team; the decoder follows a given decision order."""
+
+    config: NetworkConfig
+    num_agents: int
+    action_dim: int
+    discrete: bool
+
+    def setup(self) -> None:
+        cfg = self.config
+        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block)
+        self.value_head = AgentValueHead(cfg.n_embd, cfg.init_gain)
+        self.action_embedding = dense(cfg.n_embd)
+        self.token_norm = nn.LayerNorm()
+        self.blocks = [MATDecodeBlock(cfg.n_embd, cfg.n_head) for _ in range(cfg.n_block)]
+        self.head = ActionHead(cfg.n_embd, self.action_dim, self.discrete, cfg.init_gain)
+
+    def encode(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Ô [n, d] and the team value mean_i V(ô_i)."""
+        encoded = self.encoder(obs)
+        return encoded, jnp.mean(self.value_head(encoded), axis=-1)
+
+    def value(self, obs: jax.Array) -> jax.Array:
+        return self.encode(obs)[1]
+
+    def start_action(self) -> jax.Array:
+        """The 'no previous agent' action: index -1 (one-hot slot 0) or a zero vector."""
+        if self.discrete:
+            return jnp.array(-1, jnp.int32)
+        return jnp.zeros(self.action_dim)
+
+    def embed(self, actions: jax.Array) -> jax.Array:
+        """Decoder tokens of previous actions: one-hot over A+1 slots, or the raw vector."""
+        features = jax.nn.one_hot(actions + 1, self.action_dim + 1) if self.discrete else actions
+        return self.token_norm(nn.gelu(self.action_embedding(features)))
+
+    def policy_params(
+        self, features: jax.Array, action_mask: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
+        params, log_std = self.head(features)
+        if self.discrete:
+            params = jnp.where(action_mask, params, MASKED_LOGIT)
+        return params, log_std
+
+    def decode(
+        self, encoded: jax.Array, action_mask: jax.Array, order: jax.Array, key: jax.Array | None
+    ) -> tuple[jax.Array, jax.Array]:
+        """Acts agent by agent along `order`, feeding each action back (sampled, or the most
+        likely one when `key` is None). Returns actions and their log-probs in agent order."""
+        agents, masks = encoded[order], action_mask[order]
+        n = self.num_agents
+        keys: list[jax.Array | None] = [None] * n if key is None else list(jax.random.split(key, n))
+        caches: list[BlockCache | None] = [None] * len(self.blocks)
+        previous = self.start_action()
+        actions, log_probs = [], []
+        for k in range(n):
+            x = self.embed(previous[None])
+            for layer, block in enumerate(self.blocks):
+                x, caches[layer] = block.step(x, agents[k : k + 1], caches[layer])
+            params, log_std = self.policy_params(x[0], masks[k])
+            distribution = action_distribution(params, log_std, self.discrete)
+            if keys[k] is None:
+                previous = greedy_action(params, self.discrete)
+                log_prob = distribution.log_prob(previous)
+            else:
+                previous, log_prob = distribution.sample_and_log_prob(seed=keys[k])
+            actions.append(previous)
+            log_probs.append(log_prob)
+        inverse = jnp.argsort(order)
+        return jnp.stack(actions)[inverse], jnp.stack(log_probs)[inverse]
+
+    def __call__(
+        self, obs: jax.Array, action_mask: jax.Array, actions: jax.Array, order: jax.Array
+    ) -> MATOutput:
+        """Teacher forcing: every agent's distribution given the actions of those before it
+        in `order`, in one causal pass over the shifted action sequence."""
+        encoded, value = self.encode(obs)
+        ordered = actions[order]
+        shifted = jnp.concatenate([self.start_action()[None], ordered[:-1]], axis=0)
+        x = self.embed(shifted)
+        for block in self.blocks:
+            x = block(x, encoded[order])
+        inverse = jnp.argsort(order)
+        params, log_std = self.policy_params(x[inverse], action_mask)
+        return MATOutput(params, log_std, value, encoded)
