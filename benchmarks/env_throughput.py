@@ -12,13 +12,12 @@ from __future__ import annotations
 import argparse
 import platform
 import time
-from collections.abc import Callable
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
-from cmat.envs import MarlEnv, TimeStep, make_env
+from cmat.envs import make_env
+from cmat.envs.random_policy import random_rollout
 
 DEFAULT_CONFIGS = [
     ("smax:3m", 64),
@@ -29,34 +28,11 @@ DEFAULT_CONFIGS = [
 ]
 
 
-def make_run(env: MarlEnv, num_envs: int, num_steps: int) -> Callable[[jax.Array], Any]:
-    """A function running `num_steps` random legal joint actions in `num_envs` envs.
-
-    It returns the final carry as well as the episode count, so XLA cannot drop any of the work.
-    """
-
-    def one_step(carry: tuple[Any, TimeStep], key: jax.Array) -> tuple[Any, jax.Array]:
-        state, timestep = carry
-        action_key, step_key = jax.random.split(key)
-        logits = jnp.where(timestep.action_mask, 0.0, -jnp.inf)
-        actions = jax.random.categorical(action_key, logits)
-        state, timestep = jax.vmap(env.step)(jax.random.split(step_key, num_envs), state, actions)
-        return (state, timestep), timestep.done
-
-    def run(key: jax.Array) -> tuple[Any, jax.Array]:
-        reset_key, scan_key = jax.random.split(key)
-        carry = jax.vmap(env.reset)(jax.random.split(reset_key, num_envs))
-        carry, dones = jax.lax.scan(one_step, carry, jax.random.split(scan_key, num_steps))
-        return carry, dones.sum()
-
-    return run
-
-
 def measure(env_id: str, num_envs: int, num_steps: int, repeats: int) -> dict[str, Any]:
     """Compile once, then time `repeats` runs and keep the fastest."""
     env = make_env(env_id)
     start = time.perf_counter()
-    compiled = jax.jit(make_run(env, num_envs, num_steps)).lower(jax.random.key(0)).compile()
+    compiled = jax.jit(random_rollout(env, num_envs, num_steps)).lower(jax.random.key(0)).compile()
     compile_s = time.perf_counter() - start
     times: list[float] = []
     for i in range(repeats):

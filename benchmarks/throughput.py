@@ -1,13 +1,22 @@
-"""Training throughput and peak memory of each algorithm's compiled program, one process each.
+"""Where CMAT's training time goes, and training steps/s of every algorithm.
 
-    python benchmarks/throughput.py                              # every algorithm, SMAX 3s5z_vs_3s6z
-    python benchmarks/throughput.py --algo cmat --preset reference --preset mava
+    python benchmarks/throughput.py                         # CMAT breakdown, SMAX 3m and 3s5z_vs_3s6z
+    python benchmarks/throughput.py --envs 128 --scenarios smax:3m
+    python benchmarks/throughput.py --compare-algorithms    # every algorithm on 3s5z_vs_3s6z
+    python benchmarks/throughput.py --compare-algorithms --algo cmat --algo mat --preset mava
 
-Steps/s counts environment steps of all seeds, rollout and PPO update together, timed on the
-second chunk (after compilation, which is reported on its own). Peak memory is the process's
-maximum resident set size. The `mava` preset is the configuration at which Mava's MAT was
-measured on this kind of machine (shared/reference/README.md: about 169 steps/s, 13.2 GB peak on
-3s5z_vs_3s6z), so the two can be compared at equal work per step.
+Breakdown (one process, default config but `--envs` environments): env-only steps/s (random
+legal actions in the same kind of scan), collection steps/s (CMAT acting + env, no update), full
+training steps/s (collect, target values, GAE, PPO epochs), and the update's achieved FLOP/s
+beside a large matmul's FLOP/s measured in the same process. The update's FLOPs are XLA's cost
+analysis of one compiled gradient step (no scan inside it: the decoder's m iterations are
+unrolled, so every iteration is counted) times epochs × minibatches. Everything is timed after
+compilation, fastest of `--repeats` runs.
+
+Algorithm comparison (one process per algorithm, each with its defaults from cmat.config):
+training steps/s counting all seeds' environment steps, timed on the second chunk. The `mava`
+preset is the configuration at which Mava's MAT was measured on this kind of machine
+(shared/reference/README.md: about 169 steps/s and 13.2 GB peak on 3s5z_vs_3s6z).
 """
 
 from __future__ import annotations
@@ -18,6 +27,8 @@ import resource
 import subprocess
 import sys
 import time
+from collections.abc import Callable
+from typing import Any
 
 from cmat.config import ALGORITHMS
 
@@ -30,7 +41,83 @@ PRESETS: dict[str, list[str]] = {
 }
 
 
-def measure(env: str, algo: str, overrides: list[str], updates: int) -> dict[str, float]:
+def fastest(function: Callable[[], Any], repeats: int) -> float:
+    import jax
+
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(function())
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def matmul_flops_per_second(size: int = 2048, repeats: int = 5) -> float:
+    import jax
+    import jax.numpy as jnp
+
+    a = jax.random.normal(jax.random.PRNGKey(0), (size, size))
+    product = jax.jit(lambda x: x @ x)
+    jax.block_until_ready(product(a))
+    return 2 * size**3 / fastest(lambda: product(a), repeats)
+
+
+def compiled_flops(compiled: Any) -> float:
+    analysis = compiled.cost_analysis()
+    if isinstance(analysis, list):
+        analysis = analysis[0]
+    return float(analysis["flops"])
+
+
+def breakdown(env_id: str, num_envs: int, repeats: int) -> dict[str, float]:
+    """Env-only, collection, training steps/s and update FLOP/s of CMAT's default config."""
+    import jax
+
+    from cmat.config import load_config
+    from cmat.envs.random_policy import random_rollout
+    from cmat.runners import trainer as trainer_lib
+
+    config = load_config(overrides=[f"env={env_id}", f"num_envs={num_envs}"])
+    setup = trainer_lib.build_setup(config)
+    steps = config.steps_per_update
+    state = jax.jit(lambda key: trainer_lib.init_state(setup, key))(jax.random.PRNGKey(0))
+
+    env_only = jax.jit(random_rollout(setup.env, num_envs, config.rollout_length))
+    jax.block_until_ready(env_only(jax.random.PRNGKey(1)))
+    env_only_s = fastest(lambda: env_only(jax.random.PRNGKey(1)), repeats)
+
+    collect = jax.jit(lambda s: trainer_lib.collect_rollout(setup, s))
+    state, rollout = collect(state)
+    collect_s = fastest(lambda: collect(state), repeats)
+
+    _, batch = jax.jit(lambda s, r: trainer_lib.make_batch(setup, s, r))(state, rollout)
+    optimise = jax.jit(lambda p, o, b, k: trainer_lib.optimise(setup, p, o, b, k))
+    key = jax.random.PRNGKey(2)
+    jax.block_until_ready(optimise(state.params, state.opt_state, batch, key))
+    update_s = fastest(lambda: optimise(state.params, state.opt_state, batch, key), repeats)
+    minibatch = jax.tree.map(lambda x: x[: x.shape[0] // config.ppo.num_minibatches], batch)
+    gradient = jax.jit(jax.grad(lambda p, b: setup.algorithm.loss(p, b, config.ppo)[0]))
+    step_flops = compiled_flops(gradient.lower(state.params, minibatch).compile())
+    update_flops = step_flops * config.ppo.epochs * config.ppo.num_minibatches
+
+    train = jax.jit(lambda s: trainer_lib.update_step(setup, s))
+    jax.block_until_ready(train(state))
+    train_s = fastest(lambda: train(state), repeats)
+
+    matmul = matmul_flops_per_second()
+    return {
+        "env_only_sps": steps / env_only_s,
+        "collect_sps": steps / collect_s,
+        "train_sps": steps / train_s,
+        "update_s": update_s,
+        "update_gflops": update_flops / update_s / 1e9,
+        "matmul_gflops": matmul / 1e9,
+        "collect_ratio": env_only_s / collect_s,
+        "update_flops_ratio": update_flops / update_s / matmul,
+    }
+
+
+def measure_training(env: str, algo: str, overrides: list[str], updates: int) -> dict[str, float]:
     import jax
 
     from cmat.config import load_config
@@ -48,28 +135,15 @@ def measure(env: str, algo: str, overrides: list[str], updates: int) -> dict[str
     state, _ = trainer.train_chunk(state)
     jax.block_until_ready(state)
     run = time.perf_counter() - start
-    steps = updates * config.steps_per_update * config.seeds
     return {
-        "steps_per_second": steps / run,
+        "steps_per_second": updates * config.steps_per_update * config.seeds / run,
         "compile_seconds": first - run,
         "seconds_per_update": run / updates,
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="smax:3s5z_vs_3s6z")
-    parser.add_argument("--algo", choices=ALGORITHMS, action="append")
-    parser.add_argument("--preset", choices=sorted(PRESETS), action="append",
-                        help="default: reference")
-    parser.add_argument("--updates", type=int, default=2, help="updates per timed chunk")
-    parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
-    parser.add_argument("--single", action="store_true", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.single:
-        print(json.dumps(measure(args.env, args.algo[0], args.set, args.updates)))
-        return
+def compare_algorithms(args: argparse.Namespace) -> None:
     print(f"Training throughput on {args.env} ({args.updates} updates per timed chunk; "
           "each algorithm with its own defaults from cmat.config)")
     print(f"{'algo':<12} {'preset':<10} {'steps/s':>9} {'s/update':>9} {'compile s':>10} "
@@ -88,6 +162,43 @@ def main() -> None:
             print(f"{algo:<12} {preset:<10} {result['steps_per_second']:>9.0f} "
                   f"{result['seconds_per_update']:>9.2f} {result['compile_seconds']:>10.1f} "
                   f"{result['peak_rss_gb']:>12.2f}  {' '.join(overrides) or '-'}", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenarios", nargs="+", default=["smax:3m", "smax:3s5z_vs_3s6z"])
+    parser.add_argument("--envs", type=int, default=64, help="parallel environments (breakdown)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--compare-algorithms", action="store_true")
+    parser.add_argument("--env", default="smax:3s5z_vs_3s6z", help="env of the comparison")
+    parser.add_argument("--algo", choices=ALGORITHMS, action="append")
+    parser.add_argument("--preset", choices=sorted(PRESETS), action="append",
+                        help="comparison config (default: reference)")
+    parser.add_argument("--updates", type=int, default=1, help="updates per timed chunk")
+    parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
+    parser.add_argument("--single", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.single:
+        print(json.dumps(measure_training(args.env, args.algo[0], args.set, args.updates)))
+        return
+    if args.compare_algorithms:
+        compare_algorithms(args)
+        return
+    print(f"CMAT default config (32 -> {args.envs} envs x 100 steps, 15 epochs, 1 minibatch, "
+          f"d=64, 1 block, m=n); fastest of {args.repeats}")
+    print(f"{'env':<20} {'env-only sps':>12} {'collect sps':>12} {'train sps':>10} "
+          f"{'collect/env':>11} {'update GFLOP/s':>15} {'matmul GFLOP/s':>15} {'ratio':>6}")
+    results = {}
+    for env_id in args.scenarios:
+        r = results[env_id] = breakdown(env_id, args.envs, args.repeats)
+        print(f"{env_id:<20} {r['env_only_sps']:>12,.0f} {r['collect_sps']:>12,.0f} "
+              f"{r['train_sps']:>10,.0f} {r['collect_ratio']:>11.2f} {r['update_gflops']:>15.1f} "
+              f"{r['matmul_gflops']:>15.1f} {r['update_flops_ratio']:>6.2f}", flush=True)
+    for env_id, r in results.items():
+        print(f"RESULT env={env_id} envs={args.envs} env_only_sps={r['env_only_sps']:.0f} "
+              f"collect_sps={r['collect_sps']:.0f} train_sps={r['train_sps']:.0f} "
+              f"collect_ratio={r['collect_ratio']:.3f} "
+              f"update_flops_ratio={r['update_flops_ratio']:.3f}")
 
 
 if __name__ == "__main__":
