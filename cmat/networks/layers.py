@@ -41,13 +41,19 @@ class MultiHeadAttention(nn.Module):
         """Keys and values of `memory` [..., L, d], as [..., L, heads, d/heads]."""
         return self.split_heads(self.key(memory)), self.split_heads(self.value(memory))
 
-    def attend(self, x: jax.Array, keys: jax.Array, values: jax.Array) -> jax.Array:
-        """Every query position of `x` attends to all given keys (no mask)."""
-        heads = nn.dot_product_attention(self.split_heads(self.query(x)), keys, values)
+    def attend(
+        self, x: jax.Array, keys: jax.Array, values: jax.Array, causal: bool = False
+    ) -> jax.Array:
+        """Query positions of `x` attend to the given keys: all of them, or with `causal`,
+        position k to keys 0..k only."""
+        mask = None
+        if causal:
+            mask = jnp.tril(jnp.ones((x.shape[-2], keys.shape[-3]), dtype=bool))
+        heads = nn.dot_product_attention(self.split_heads(self.query(x)), keys, values, mask=mask)
         return self.out(heads.reshape(*x.shape[:-1], self.n_embd))
 
-    def __call__(self, x: jax.Array, memory: jax.Array) -> jax.Array:
-        return self.attend(x, *self.project_memory(memory))
+    def __call__(self, x: jax.Array, memory: jax.Array, causal: bool = False) -> jax.Array:
+        return self.attend(x, *self.project_memory(memory), causal=causal)
 
 
 class FeedForward(nn.Module):
@@ -144,14 +150,6 @@ class DecoderBlock(nn.Module):
 
     def __call__(self, tokens: jax.Array, memory: jax.Array) -> jax.Array:
         """Full causal pass over tokens [..., L, d]; equals iterating `step` (used in tests)."""
-        length = tokens.shape[-2]
-        causal = jnp.tril(jnp.ones((length, length), dtype=bool))
-        keys, values = self.self_attention.project_memory(tokens)
-        heads = nn.dot_product_attention(
-            self.self_attention.split_heads(self.self_attention.query(tokens)), keys, values,
-            mask=causal,
-        )
-        attended = self.self_attention.out(heads.reshape(*tokens.shape[:-1], self.n_embd))
-        x = self.norms[0](tokens + attended)
+        x = self.norms[0](tokens + self.self_attention(tokens, tokens, causal=True))
         x = self.norms[1](x + self.cross_attention(x, memory))
         return self.norms[2](x + self.feed_forward(x))

@@ -48,19 +48,6 @@ class MATOutput(NamedTuple):
     """[n, d] the encoder output Ô."""
 
 
-def causal_attention(
-    attention: MultiHeadAttention, queries: jax.Array, memory: jax.Array
-) -> jax.Array:
-    """Position k of `queries` [..., L, d] attends to positions 0..k of `memory` [..., L, d]."""
-    length = queries.shape[-2]
-    keys, values = attention.project_memory(memory)
-    heads = nn.dot_product_attention(
-        attention.split_heads(attention.query(queries)), keys, values,
-        mask=jnp.tril(jnp.ones((length, length), dtype=bool)),
-    )
-    return attention.out(heads.reshape(*queries.shape[:-1], attention.n_embd))
-
-
 def extend(cache: KeyValues | None, new: KeyValues) -> KeyValues:
     if cache is None:
         return new
@@ -102,8 +89,8 @@ class MATDecodeBlock(nn.Module):
 
     def __call__(self, tokens: jax.Array, agents: jax.Array) -> jax.Array:
         """All positions at once (causal masks); equals iterating `step`."""
-        x = self.norms[0](tokens + causal_attention(self.token_attention, tokens, tokens))
-        y = self.norms[1](agents + causal_attention(self.agent_attention, agents, x))
+        x = self.norms[0](tokens + self.token_attention(tokens, tokens, causal=True))
+        y = self.norms[1](agents + self.agent_attention(agents, x, causal=True))
         return self.norms[2](y + self.feed_forward(y))
 
 
