@@ -54,7 +54,6 @@ def fastest(function: Callable[[], Any], repeats: int) -> float:
 
 def matmul_flops_per_second(size: int = 2048, repeats: int = 5) -> float:
     import jax
-    import jax.numpy as jnp
 
     a = jax.random.normal(jax.random.PRNGKey(0), (size, size))
     product = jax.jit(lambda x: x @ x)
