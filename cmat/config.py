@@ -19,6 +19,9 @@ from omegaconf.errors import OmegaConfBaseException
 from cmat.errors import CmatError
 
 CONSENSUS_SOURCES = ("mixture", "last")
+ITERATION_RULES = {"n": (1, 1), "n/2": (1, 2), "2n": (2, 1)}
+"""m given relative to the number of agents n: name -> (numerator, denominator), m = ⌊n·a/b⌋."""
+FINETUNE_MODES = ("consensus", "action")
 ALGORITHMS = ("cmat", "mat", "pmat", "triple_bert", "happo", "mappo")
 
 ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -47,9 +50,10 @@ class NetworkConfig:
     compressor_heads: int = 4
     """h, the number of soft mixtures each compressor forms (eq. critic_compressor); the paper
     does not give it."""
-    consensus_iterations: int | None = None
-    """m, decoder iterations (eq. decoder). None means m = number of agents (the paper's default);
-    0 uses e0 alone."""
+    consensus_iterations: int | str | None = None
+    """m, decoder iterations (eq. decoder): an integer >= 0, or 'n', 'n/2' (⌊n/2⌋) or '2n'
+    resolved against the environment's number of agents n (the paper's ablation values). None
+    means 'n' (the paper's default); 0 uses e0 alone. See `resolve_iterations`."""
     consensus_source: str = "mixture"
     """'mixture': c = Actor-Compressor(e0..em) (eq. actor_compressor, the default);
     'last': c = e_m (the paper's ablation)."""
@@ -110,6 +114,12 @@ class TrainConfig:
     """Updates between log rows, evaluations and checkpoints; None gives about 20 per run."""
     eval_episodes: int = 32
     """Greedy evaluation episodes per seed at each log interval."""
+    finetune: str | None = None
+    """None (joint training), or the paper's fine-tuning stage (Algorithm 1, B), CMAT only:
+    'consensus' trains only Critic-MLP, decoder and Actor-Compressor; 'action' trains only
+    Critic-MLP and Actor-MLP. The rest is frozen by an optimizer mask (`cmat finetune`)."""
+    finetune_from: str | None = None
+    """The run directory a fine-tuning run started from (recorded by `cmat finetune`)."""
     network: NetworkConfig = field(default_factory=NetworkConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
 
@@ -144,8 +154,14 @@ def validate(config: TrainConfig) -> TrainConfig:
         (net.n_block > 0, f"network.n_block must be > 0, got {net.n_block}"),
         (net.compressor_heads > 0,
          f"network.compressor_heads must be > 0, got {net.compressor_heads}"),
-        (net.consensus_iterations is None or net.consensus_iterations >= 0,
-         f"network.consensus_iterations (m) must be >= 0, got {net.consensus_iterations}"),
+        (valid_iterations(net.consensus_iterations),
+         f"network.consensus_iterations (m) must be >= 0, got {net.consensus_iterations!r} "
+         f"(or one of {', '.join(ITERATION_RULES)}: relative to the number of agents n)"),
+        (config.finetune is None or config.finetune in FINETUNE_MODES,
+         f"finetune must be one of {', '.join(FINETUNE_MODES)}, got {config.finetune!r}"),
+        (config.finetune is None or config.algo == "cmat",
+         f"fine-tuning (finetune={config.finetune}) freezes CMAT's blocks and is supported "
+         f"only for algo cmat, got {config.algo!r}"),
         (net.consensus_source in CONSENSUS_SOURCES,
          f"network.consensus_source must be one of {CONSENSUS_SOURCES}, "
          f"got {net.consensus_source!r}"),
@@ -163,6 +179,25 @@ def validate(config: TrainConfig) -> TrainConfig:
         if not ok:
             raise CmatError(f"invalid config: {message}")
     return config
+
+
+def valid_iterations(m: int | str | None) -> bool:
+    if isinstance(m, bool):
+        return False
+    return m is None or (isinstance(m, int) and m >= 0) or m in ITERATION_RULES
+
+
+def resolve_iterations(m: int | str | None, num_agents: int) -> int:
+    """The number of decoder iterations for `num_agents` agents: None and 'n' give n, 'n/2'
+    gives ⌊n/2⌋, '2n' gives 2n, an integer itself."""
+    if isinstance(m, int) and not isinstance(m, bool):
+        return m
+    rule = "n" if m is None else m
+    if rule not in ITERATION_RULES:
+        raise CmatError(f"invalid config: network.consensus_iterations {m!r} is not an integer "
+                        f"or one of {', '.join(ITERATION_RULES)}")
+    numerator, denominator = ITERATION_RULES[rule]
+    return num_agents * numerator // denominator
 
 
 def load_config(

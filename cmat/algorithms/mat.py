@@ -2,7 +2,9 @@
 
 Each agent's ratio r_i = π_i(a_i | O, a_<i) / π_i,old(a_i | O, a_<i) is clipped on its own with
 the same team advantage, and the clipped objectives are averaged over agents and samples. The
-critic is V(O) = mean_i V(ô_i), trained with the team value loss.
+team value V(O) = mean_i V(ô_i) feeds GAE; as in the reference implementation, each V(ô_i) is
+regressed on the team's value target with its own clipped value loss around its collecting-time
+value, which acting stores with the transition (`ActResult.extras`).
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ class MAT:
         return self.network.init(key, obs, action_mask, actions, self.identity)
 
     def encode(self, params: Params, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Ô and the team value."""
+        """Ô and the per-agent values V(ô_i)."""
         return self.network.apply(params, obs, method=MATNetwork.encode)
 
     def decode(
@@ -60,9 +62,9 @@ class MAT:
     def act(
         self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
     ) -> ActResult:
-        encoded, value = self.encode(params, obs)
+        encoded, agent_values = self.encode(params, obs)
         actions, log_probs = self.decode(params, encoded, action_mask, self.identity, key)
-        return ActResult(actions, log_probs, value)
+        return ActResult(actions, log_probs, jnp.mean(agent_values), agent_values)
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         encoded, _ = self.encode(params, obs)
@@ -78,9 +80,16 @@ class MAT:
         )(params, batch.obs, batch.action_mask, batch.actions, orders)
 
     def loss_along(
-        self, params: Params, batch: Batch, orders: jax.Array, ppo: PPOConfig
+        self,
+        params: Params,
+        batch: Batch,
+        orders: jax.Array,
+        old_agent_values: jax.Array,
+        ppo: PPOConfig,
     ) -> tuple[jax.Array, dict[str, jax.Array], MATOutput]:
-        """Eq. mat with the actions decoded along orders [B, n]; also returns the outputs."""
+        """Eq. mat with the actions decoded along orders [B, n], and every agent's value
+        regressed on the team target around its collecting-time value [B, n]; also returns the
+        outputs."""
         output = self.teacher_forced(params, batch, orders)
         distribution = action_distribution(
             output.action_params, output.log_std, self.network.discrete
@@ -89,8 +98,9 @@ class MAT:
         advantages = jnp.broadcast_to(batch.advantages[:, None], log_ratio.shape)
         policy_loss, diagnostics = clipped_surrogate_loss(log_ratio, advantages, ppo.clip_eps)
         entropy = jnp.mean(distribution.entropy())
+        targets = jnp.broadcast_to(batch.targets[:, None], output.agent_values.shape)
         critic_loss = value_loss(
-            output.value, batch.values, batch.targets, ppo.clip_eps,
+            output.agent_values, old_agent_values, targets, ppo.clip_eps,
             ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,
         )
         total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
@@ -105,7 +115,8 @@ class MAT:
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
-        """Per-agent clipped surrogates with the team advantage, mean entropy, team value loss."""
+        """Per-agent clipped surrogates with the team advantage, mean entropy, per-agent value
+        losses on the team target."""
         orders = jnp.broadcast_to(self.identity, batch.log_probs.shape)
-        total, metrics, _ = self.loss_along(params, batch, orders, ppo)
+        total, metrics, _ = self.loss_along(params, batch, orders, batch.extras, ppo)
         return total, metrics

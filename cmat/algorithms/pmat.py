@@ -24,12 +24,15 @@ from cmat.networks.mat import OrderScorer
 
 
 class OrderSample(NamedTuple):
-    """What acting stores for the loss: the decision order and its log-probability."""
+    """What acting stores for the loss: the decision order, its log-probability and MAT's
+    per-agent values."""
 
     order: jax.Array
     """[n] agent acting at each decoding position."""
     log_prob: jax.Array
     """[] log P(order) under the collecting parameters."""
+    agent_values: jax.Array
+    """[n] V(ô_i) under the collecting parameters."""
 
 
 def order_log_prob(scores: jax.Array, order: jax.Array) -> jax.Array:
@@ -60,19 +63,19 @@ class PMAT:
         return {"mat": mat, "scorer": self.scorer.init(scorer_key, encoded)}
 
     def scores(self, params: Params, obs: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """Ô, the team value and the agents' order scores."""
-        encoded, value = self.mat.encode(params["mat"], obs)
-        return encoded, value, self.scorer.apply(params["scorer"], encoded)
+        """Ô, the per-agent values and the agents' order scores."""
+        encoded, agent_values = self.mat.encode(params["mat"], obs)
+        return encoded, agent_values, self.scorer.apply(params["scorer"], encoded)
 
     def act(
         self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
     ) -> ActResult:
         order_key, action_key = jax.random.split(key)
-        encoded, value, scores = self.scores(params, obs)
+        encoded, agent_values, scores = self.scores(params, obs)
         order = sample_order(scores, order_key)
         actions, log_probs = self.mat.decode(params["mat"], encoded, action_mask, order, action_key)
-        sampled = OrderSample(order, order_log_prob(scores, order))
-        return ActResult(actions, log_probs, value, sampled)
+        sampled = OrderSample(order, order_log_prob(scores, order), agent_values)
+        return ActResult(actions, log_probs, jnp.mean(agent_values), sampled)
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         """Agents in descending score order, each taking its most likely action."""
@@ -88,7 +91,9 @@ class PMAT:
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
         """MAT's loss along the sampled orders plus the clipped order term."""
         sampled: OrderSample = batch.extras
-        total, metrics, output = self.mat.loss_along(params["mat"], batch, sampled.order, ppo)
+        total, metrics, output = self.mat.loss_along(
+            params["mat"], batch, sampled.order, sampled.agent_values, ppo
+        )
         scores = self.scorer.apply(params["scorer"], output.encoded)
         order_loss, diagnostics = clipped_surrogate_loss(
             order_log_prob(scores, sampled.order) - sampled.log_prob, batch.advantages, ppo.clip_eps

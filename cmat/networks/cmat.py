@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import flax.linen as nn
 
-from cmat.config import NetworkConfig
+from cmat.config import NetworkConfig, resolve_iterations
 from cmat.networks.layers import Compressor, DecoderBlock, ObservationEncoder, dense
 
 
@@ -106,9 +106,8 @@ class CMATNetwork(nn.Module):
 
     @property
     def iterations(self) -> int:
-        """m (paper eq. decoder); defaults to the number of agents."""
-        m = self.config.consensus_iterations
-        return self.num_agents if m is None else m
+        """m (paper eq. decoder); defaults to the number of agents ('n', 'n/2', '2n' allowed)."""
+        return resolve_iterations(self.config.consensus_iterations, self.num_agents)
 
     def setup(self) -> None:
         cfg = self.config

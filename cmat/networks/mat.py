@@ -1,6 +1,8 @@
 """The Multi-Agent Transformer network (Wen et al. 2022) as in the official PKU-MARL code.
 
 O --Encoder--> Ô --per-agent head--> V(ô_i);  V(O) = mean_i V(ô_i)  (paper text after eq. mat)
+Each V(ô_i) is regressed on the team's value target (the reference implementation's loss); the
+team value V(O) is what GAE and the target critic use.
 a^σ(k-1) --embed--> causal self-attention --> ô^σ(k) queries it --> π^σ(k)(· | O, a^σ(<k))
 
 The decoder runs along a decision order σ, a permutation of the agents (the identity for MAT, a
@@ -42,8 +44,8 @@ class MATOutput(NamedTuple):
     """[n, A]: masked logits (discrete) or Gaussian means (continuous)."""
     log_std: jax.Array
     """[A] learned state-independent log-std (continuous); empty for discrete heads."""
-    value: jax.Array
-    """[] team value V(O) = mean_i V(ô_i)."""
+    agent_values: jax.Array
+    """[n] per-agent values V(ô_i); the team value V(O) is their mean."""
     encoded: jax.Array
     """[n, d] the encoder output Ô."""
 
@@ -135,12 +137,13 @@ class MATNetwork(nn.Module):
         self.head = ActionHead(cfg.n_embd, self.action_dim, self.discrete, cfg.init_gain)
 
     def encode(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Ô [n, d] and the team value mean_i V(ô_i)."""
+        """Ô [n, d] and the per-agent values V(ô_i) [n]."""
         encoded = self.encoder(obs)
-        return encoded, jnp.mean(self.value_head(encoded), axis=-1)
+        return encoded, self.value_head(encoded)
 
     def value(self, obs: jax.Array) -> jax.Array:
-        return self.encode(obs)[1]
+        """The team value V(O) = mean_i V(ô_i)."""
+        return jnp.mean(self.encode(obs)[1], axis=-1)
 
     def start_action(self) -> jax.Array:
         """The 'no previous agent' action: index -1 (one-hot slot 0) or a zero vector."""
@@ -193,7 +196,7 @@ class MATNetwork(nn.Module):
     ) -> MATOutput:
         """Teacher forcing: every agent's distribution given the actions of those before it
         in `order`, in one causal pass over the shifted action sequence."""
-        encoded, value = self.encode(obs)
+        encoded, agent_values = self.encode(obs)
         ordered = actions[order]
         shifted = jnp.concatenate([self.start_action()[None], ordered[:-1]], axis=0)
         x = self.embed(shifted)
@@ -201,4 +204,4 @@ class MATNetwork(nn.Module):
             x = block(x, encoded[order])
         inverse = jnp.argsort(order)
         params, log_std = self.policy_params(x[inverse], action_mask)
-        return MATOutput(params, log_std, value, encoded)
+        return MATOutput(params, log_std, agent_values, encoded)

@@ -72,8 +72,10 @@ class TrainSetup:
         return self.env.spec
 
 
-def build_setup(config: TrainConfig) -> TrainSetup:
-    env = make_env(config.env, **config.env_kwargs)
+def build_setup(config: TrainConfig, env: MarlEnv | None = None) -> TrainSetup:
+    """The setup of `config`; `env` replaces the registry's environment (the host runner passes
+    one that holds only its `spec`, since it steps its environments outside the program)."""
+    env = env if env is not None else make_env(config.env, **config.env_kwargs)
     algorithm = build_algorithm(config.algo, config.network, env.spec)
     optimizer = optax.chain(
         optax.clip_by_global_norm(config.ppo.max_grad_norm),
@@ -230,6 +232,16 @@ def optimise(
 def update_step(setup: TrainSetup, state: TrainerState) -> tuple[TrainerState, dict[str, jax.Array]]:
     """One PPO update of one seed: collect, estimate, optimise, soft-update the target critic."""
     state, rollout = collect_rollout(setup, state)
+    return learn(setup, state, rollout)
+
+
+def learn(
+    setup: TrainSetup, state: TrainerState, rollout: Transition
+) -> tuple[TrainerState, dict[str, jax.Array]]:
+    """Everything of an update after collection: GAE from the target critic (bootstrapped from
+    `state.timestep`, the observation after the rollout), PPO (or the algorithm's own
+    `optimise`), the target critic's soft update and the rollout's episode sums. The host runner
+    calls it on rollouts it collected outside the program."""
     value_norm, batch = make_batch(setup, state, rollout)
     rng, update_key = jax.random.split(state.rng)
     optimise_fn = getattr(setup.algorithm, "optimise", optimise)
@@ -256,6 +268,13 @@ def run_updates(
     state, per_update = jax.lax.scan(
         lambda s, _: update_step(setup, s), state, None, num_updates
     )
+    return state, summarise_updates(setup, per_update)
+
+
+def summarise_updates(setup: TrainSetup, per_update: dict[str, jax.Array]) -> dict[str, jax.Array]:
+    """Metrics of updates stacked on a leading axis: losses averaged, episode sums pooled into
+    the mean return and win rate of the episodes that ended in the span (NaN where none did)."""
+    per_update = dict(per_update)
     episodes = jnp.sum(per_update.pop("episodes"))
     return_sum = jnp.sum(per_update.pop("return_sum"))
     win_sum = jnp.sum(per_update.pop("win_sum"))
@@ -263,7 +282,7 @@ def run_updates(
     metrics["episode_return"] = jnp.where(episodes > 0, return_sum / jnp.maximum(episodes, 1), jnp.nan)
     win_rate = jnp.where(episodes > 0, win_sum / jnp.maximum(episodes, 1), jnp.nan)
     metrics["win_rate"] = win_rate if setup.spec.has_win_rate else jnp.full_like(win_rate, jnp.nan)
-    return state, metrics
+    return metrics
 
 
 def evaluate_greedy(
