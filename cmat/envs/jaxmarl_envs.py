@@ -34,8 +34,10 @@ with (
     from jaxmarl.environments.smax import SMAX, HeuristicEnemySMAX, map_name_to_scenario
     from jaxmarl.environments.smax.smax_env import MAP_NAME_TO_SCENARIO
 
-SMAX_SCENARIOS = tuple(MAP_NAME_TO_SCENARIO)
-"""Every scenario JaxMARL's SMAX defines."""
+    from cmat.envs import smax_healer
+
+SMAX_SCENARIOS = (*MAP_NAME_TO_SCENARIO, *smax_healer.SCENARIOS)
+"""Every scenario JaxMARL's SMAX defines, and the healer scenarios of `cmat.envs.smax_healer`."""
 
 _SMAX_FIXED = {
     "env_kwargs", "scenario", "num_allies", "num_enemies", "action_type",
@@ -109,11 +111,13 @@ class SmaxEnv(JaxMarlEnv):
     """
 
     def __init__(self, scenario: str, **kwargs: Any) -> None:
-        super().__init__(
-            f"smax:{scenario}",
-            HeuristicEnemySMAX(scenario=map_name_to_scenario(scenario), **kwargs),
-            has_win_rate=True,
-        )
+        if scenario in smax_healer.SCENARIOS:
+            env = smax_healer.HeuristicEnemyHealerSMAX(
+                scenario=smax_healer.SCENARIOS[scenario], **kwargs
+            )
+        else:
+            env = HeuristicEnemySMAX(scenario=map_name_to_scenario(scenario), **kwargs)
+        super().__init__(f"smax:{scenario}", env, has_win_rate=True)
 
     def _action_mask(self, state: Any) -> jax.Array:
         return self._stack(self.env.get_avail_actions(state)).astype(bool)
