@@ -22,7 +22,7 @@ def fig1_optimum_count(tau: float, steps: int) -> int:
         "env=matrix:fig1", f"total_steps={steps}", "num_envs=16", "rollout_length=25",
         "ppo.epochs=5", "seeds=10", f"log_interval={steps // 400}", f"ppo.target_tau={tau}",
     ])
-    return train_and_count_optimum(config, optimum=(1, 1))[0]
+    return train_and_count_optimum(config)[0]
 
 
 def smax_result(tau: float, steps: int, seeds: int) -> dict[str, np.ndarray]:

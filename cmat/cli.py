@@ -1,4 +1,4 @@
-"""Command line: `cmat train`, `cmat eval`, `cmat plot`.
+"""Command line: `cmat train`, `cmat finetune`, `cmat eval`, `cmat plot`, `cmat experiment`.
 
 Every user error (CmatError, an unreadable file) is one line `cmat: error: ...` on stderr and
 exit code 2, as argparse does for usage errors.
@@ -16,14 +16,14 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cmat.config import TrainConfig, load_config, validate
+from cmat.config import FINETUNE_MODES, TrainConfig, load_config, resolve_iterations, validate
 from cmat.errors import CmatError
 from cmat.experiments.plots import plot_runs
 from cmat.rundir import RunDir
 from cmat.runners.loop import run_training
 
 if TYPE_CHECKING:
-    from cmat.runners.trainer import Trainer
+    from cmat.runners.trainer import Trainer, TrainerState
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -32,7 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     train = commands.add_parser("train", help="train a new run or resume one")
-    train.add_argument("--env", help="environment id (matrix:NAME, smax:SCENARIO, mpe:NAME)")
+    train.add_argument("--env", help="environment id (matrix:NAME, smax:SCENARIO, mpe:NAME; "
+                       "host: mamujoco:SCENARIO-CONF, grf:SCENARIO, "
+                       "pettingzoo:package.module:factory)")
     train.add_argument("--algo", help="algorithm (default cmat)")
     train.add_argument("--steps", type=int, help="environment steps per seed (total_steps)")
     train.add_argument("--seeds", type=int, help="independent seeds trained at once")
@@ -51,12 +53,53 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--run", type=Path, required=True, metavar="DIR", help="run directory")
     evaluate.add_argument("--episodes", type=int,
                           help="episodes per seed (default: the run's eval_episodes)")
+    evaluate.add_argument(
+        "--iterations", type=int, metavar="K",
+        help="CMAT only: run the decoder for K consensus iterations instead of the trained m "
+             "(0 <= K <= m; the decoder is weight-shared, only its positional table is per "
+             "iteration)",
+    )
     evaluate.set_defaults(handler=eval_command)
 
     plot = commands.add_parser("plot", help="evaluation curves of run directories")
     plot.add_argument("runs", type=Path, nargs="+", metavar="DIR", help="run directories")
     plot.add_argument("--out", type=Path, required=True, metavar="FILE.png", help="image to write")
     plot.set_defaults(handler=plot_command)
+
+    finetune = commands.add_parser(
+        "finetune", help="continue a CMAT run with blocks frozen (paper Algorithm 1, B)"
+    )
+    finetune.add_argument("--from", dest="source", type=Path, required=True, metavar="RUN_DIR",
+                          help="the CMAT run directory whose checkpoint to continue")
+    finetune.add_argument(
+        "--mode", required=True, choices=FINETUNE_MODES,
+        help="consensus: train only Critic-MLP, decoder, Actor-Compressor; "
+             "action: train only Critic-MLP and Actor-MLP",
+    )
+    finetune.add_argument("--steps", type=int,
+                          help="fine-tuning env steps per seed (default: the source's total_steps)")
+    finetune.add_argument(
+        "--set", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
+        help="config overrides on top of the source run's config, e.g. ppo.lr=1e-4",
+    )
+    finetune.add_argument("--out", type=Path, metavar="DIR",
+                          help="new run directory (default runs/<env>-finetune-<mode>-<timestamp>)")
+    finetune.set_defaults(handler=finetune_command)
+
+    experiment = commands.add_parser(
+        "experiment", help="run a grid of algorithms x environments x seeds x variants"
+    )
+    experiment.add_argument("spec", type=Path, metavar="SPEC.yaml", help="experiment spec")
+    experiment.add_argument("--out", type=Path, metavar="DIR",
+                            help="experiment directory (default runs/experiments/<spec name>)")
+    experiment.add_argument("--parallel", type=int, metavar="K",
+                            help="runs at once (default: what fits this machine; with --ray, "
+                                 "every ready run)")
+    experiment.add_argument("--ray", metavar="ADDRESS",
+                            help="run on the Ray cluster at ADDRESS (needs the ray extra)")
+    experiment.add_argument("--dry-run", action="store_true",
+                            help="print the plan (what is reused, resumed, redone) and stop")
+    experiment.set_defaults(handler=experiment_command)
     return parser
 
 
@@ -115,18 +158,78 @@ def eval_command(args: argparse.Namespace) -> None:
     config = run_dir.config()
     if args.episodes is not None and args.episodes <= 0:
         raise CmatError(f"--episodes must be > 0, got {args.episodes}")
+    if args.iterations is not None and config.algo != "cmat":
+        raise CmatError(f"--iterations applies to cmat runs only; {run_dir.path} is a "
+                        f"{config.algo!r} run")
     data, _ = run_dir.load_checkpoint()
     trainer = build_trainer(config)
-    result = trainer.evaluate(
-        trainer.from_bytes(data), args.episodes or config.eval_episodes, seed=config.seed
-    )
+    state = trainer.from_bytes(data)
+    extra = {}
+    if config.algo == "cmat":
+        trained = resolve_iterations(config.network.consensus_iterations,
+                                     trainer.env_spec.num_agents)
+        extra["consensus_iterations"] = trained
+        if args.iterations is not None:
+            trainer, state = with_eval_iterations(config, trainer, state, trained, args.iterations)
+            extra["consensus_iterations"] = args.iterations
+    result = trainer.evaluate(state, args.episodes or config.eval_episodes, seed=config.seed)
     per_seed = [
         {"seed": config.seed + index,
          "episode_return": json_number(result["episode_return"][index]),
          "win_rate": json_number(result["win_rate"][index])}
         for index in range(config.seeds)
     ]
-    print(json.dumps({"per_seed": per_seed}))
+    print(json.dumps({**extra, "per_seed": per_seed}))
+
+
+def with_eval_iterations(
+    config: TrainConfig, trainer: Trainer, state: TrainerState, trained: int, iterations: int
+) -> tuple[Trainer, TrainerState]:
+    """A trainer whose network runs `iterations` consensus iterations, and `state` with the
+    decoder's positional table cut to them. Positions past the trained m were never learned, so
+    asking for more is an error rather than an extrapolation."""
+    from cmat.algorithms.cmat_blocks import with_iterations
+
+    if not 0 <= iterations <= trained:
+        raise CmatError(
+            f"--iterations must be in 0..{trained} (the m this run was trained with: the decoder "
+            f"has positional embeddings for {trained} iterations); got {iterations}. "
+            f"Train with a larger network.consensus_iterations to evaluate more"
+        )
+    network = dataclasses.replace(config.network, consensus_iterations=iterations)
+    eval_trainer = build_trainer(dataclasses.replace(config, network=network))
+    return eval_trainer, state.replace(params=with_iterations(state.params, iterations))
+
+
+def finetune_command(args: argparse.Namespace) -> None:
+    from cmat.runners.finetune import finetune_config, finetune_start
+
+    if args.steps is not None and args.steps <= 0:
+        raise CmatError(f"--steps must be > 0, got {args.steps}")
+    source_dir = RunDir.open(args.source)
+    source_config = source_dir.config()
+    config = finetune_config(source_config, source_dir.path, args.mode, args.steps, args.set)
+    data, source_steps = source_dir.load_checkpoint()
+    trainer = build_trainer(config)
+    state = finetune_start(trainer, build_trainer(source_config), data)
+    out = args.out or default_out(config)
+    run_dir = RunDir.create(out, config)
+    print(f"fine-tuning ({args.mode}) from {source_dir.path} at {source_steps} env steps",
+          file=sys.stderr)
+    try:
+        run_training(trainer, run_dir, resume=False, start=state)
+    except KeyboardInterrupt:
+        print(f"cmat: stopped at the last checkpoint; continue with: "
+              f"cmat train --resume {run_dir.path}", file=sys.stderr)
+        raise
+    print(f"run directory: {run_dir.path}")
+
+
+def experiment_command(args: argparse.Namespace) -> None:
+    from cmat.experiments.runner import run_experiment
+
+    run_experiment(args.spec, out=args.out, parallel=args.parallel, ray_address=args.ray,
+                   dry_run=args.dry_run)
 
 
 def plot_command(args: argparse.Namespace) -> None:
@@ -135,14 +238,16 @@ def plot_command(args: argparse.Namespace) -> None:
 
 
 def build_trainer(config: TrainConfig) -> Trainer:
-    """The trainer for `config`; JAX is imported here, after the log level is set."""
-    from cmat.runners.trainer import Trainer
+    """The trainer for `config` (`HostTrainer` for host environments, which has `Trainer`'s
+    interface); JAX is imported here, after the log level is set."""
+    from cmat.runners.host import build_trainer as build
 
-    return Trainer(config)
+    return build(config)
 
 
 def default_out(config: TrainConfig) -> Path:
-    return Path("runs") / f"{config.env.replace(':', '_')}-{time.strftime('%Y%m%d-%H%M%S')}"
+    stage = f"-finetune-{config.finetune}" if config.finetune else ""
+    return Path("runs") / f"{config.env.replace(':', '_')}{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def json_number(value: float) -> float | None:

@@ -19,6 +19,7 @@ from omegaconf.errors import OmegaConfBaseException
 from cmat.errors import CmatError
 
 CONSENSUS_SOURCES = ("mixture", "last")
+CONSENSUS_POLICIES = ("deterministic", "categorical", "gaussian")
 ITERATION_RULES = {"n": (1, 1), "n/2": (1, 2), "2n": (2, 1)}
 """m given relative to the number of agents n: name -> (numerator, denominator), m = ⌊n·a/b⌋."""
 FINETUNE_MODES = ("consensus", "action")
@@ -57,6 +58,19 @@ class NetworkConfig:
     consensus_source: str = "mixture"
     """'mixture': c = Actor-Compressor(e0..em) (eq. actor_compressor, the default);
     'last': c = e_m (the paper's ablation)."""
+    consensus_policy: str = "deterministic"
+    """π_c(c | O) (paper eq. joint-stochastic): 'deterministic' c = μ(O) (the paper's method);
+    'categorical' samples one of `consensus_codes` latent codes z from logits on μ(O) and acts on
+    μ(O) + embedding(z); 'gaussian' samples c ~ N(μ(O), σ²) with a learned, state-independent σ.
+    A sampled latent's log-probability enters the joint ratio."""
+    consensus_codes: int = 8
+    """K, the number of latent codes of the categorical consensus policy."""
+    latent_head_gain: float = 1.0
+    """Stochastic consensus only: orthogonal-init gain of the code logits and of the Actor-MLP's
+    output layer (in place of `init_gain`). Gain 1 makes every latent start as a distinct
+    product policy, which is what lets the mixture find a coordinated optimum: on
+    matrix:penalty (benchmarks/matrix_optimum.py) gain 0.01 left all 10 seeds on the safe
+    (1, 1)."""
     init_gain: float = 0.01
     """Orthogonal-init gain of the action and value output layers."""
 
@@ -86,6 +100,8 @@ class PPOConfig:
     huber_delta: float = 10.0
     clipped_value_loss: bool = True
     normalize_advantages: bool = True
+    consensus_ent_coef: float = 0.01
+    """Stochastic consensus only: weight of the consensus policy's entropy bonus."""
     order_loss_coef: float = 1.0
     """PMAT only: weight of the clipped PPO term on the sampled agent order's log-probability."""
 
@@ -95,7 +111,8 @@ class TrainConfig:
     """One training run: environment, budget, seeds, network and PPO settings."""
 
     env: str = "matrix:fig1"
-    """Environment id: matrix:NAME, smax:SCENARIO or mpe:NAME."""
+    """Environment id: matrix:NAME, smax:SCENARIO or mpe:NAME (in-graph), or a host environment:
+    pettingzoo:package.module:factory, mamujoco:SCENARIO-CONF or grf:SCENARIO."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
     algo: str = "cmat"
@@ -114,6 +131,9 @@ class TrainConfig:
     """Updates between log rows, evaluations and checkpoints; None gives about 20 per run."""
     eval_episodes: int = 32
     """Greedy evaluation episodes per seed at each log interval."""
+    host_workers: int | None = None
+    """Host environments only: worker processes that step them (0: in this process); None takes
+    the suite's measured default (cmat.envs.host.DEFAULT_WORKERS)."""
     finetune: str | None = None
     """None (joint training), or the paper's fine-tuning stage (Algorithm 1, B), CMAT only:
     'consensus' trains only Critic-MLP, decoder and Actor-Compressor; 'action' trains only
@@ -147,6 +167,8 @@ def validate(config: TrainConfig) -> TrainConfig:
         (config.num_envs > 0, f"num_envs must be > 0, got {config.num_envs}"),
         (config.rollout_length > 0, f"rollout_length must be > 0, got {config.rollout_length}"),
         (config.eval_episodes > 0, f"eval_episodes must be > 0, got {config.eval_episodes}"),
+        (config.host_workers is None or config.host_workers >= 0,
+         f"host_workers must be >= 0, got {config.host_workers}"),
         (config.log_interval is None or config.log_interval > 0,
          f"log_interval must be > 0, got {config.log_interval}"),
         (net.n_embd > 0 and net.n_head > 0 and net.n_embd % net.n_head == 0,
@@ -162,6 +184,15 @@ def validate(config: TrainConfig) -> TrainConfig:
         (config.finetune is None or config.algo == "cmat",
          f"fine-tuning (finetune={config.finetune}) freezes CMAT's blocks and is supported "
          f"only for algo cmat, got {config.algo!r}"),
+        (net.consensus_policy in CONSENSUS_POLICIES,
+         f"network.consensus_policy must be one of {CONSENSUS_POLICIES}, "
+         f"got {net.consensus_policy!r}"),
+        (net.consensus_codes > 0, f"network.consensus_codes must be > 0, got {net.consensus_codes}"),
+        (net.latent_head_gain > 0,
+         f"network.latent_head_gain must be > 0, got {net.latent_head_gain}"),
+        (net.consensus_policy == "deterministic" or config.algo == "cmat",
+         f"network.consensus_policy={net.consensus_policy} is a CMAT option; algo "
+         f"{config.algo!r} has no consensus"),
         (net.consensus_source in CONSENSUS_SOURCES,
          f"network.consensus_source must be one of {CONSENSUS_SOURCES}, "
          f"got {net.consensus_source!r}"),

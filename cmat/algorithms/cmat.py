@@ -3,12 +3,20 @@
 The joint ratio is Π_i π_i(a_i | O, μ_θ(O)) / Π_i π_i,old(a_i | O, μ_θ-(O)) (paper eq. ratio):
 the deterministic consensus has probability 1, so only the per-agent factors enter, and the
 gradient reaches μ_θ through c. The critic is one team value V(O) from e0 (paper eq. cmat).
+
+With a stochastic consensus (`network.consensus_policy` categorical or gaussian) the latent z
+is sampled at acting time and stored with the transition, and the joint log-probability is
+log π(A, z | O) = log π_c(z | O) + Σ_i log π_i(a_i | O, z) (eq. joint-stochastic), so its
+ratio is the product of the consensus ratio and the per-agent ratios. π_c's entropy gets its
+own coefficient, `ppo.consensus_ent_coef`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import distrax
 import jax
 import jax.numpy as jnp
 
@@ -17,7 +25,16 @@ from cmat.algorithms.distributions import action_distribution, greedy_action
 from cmat.algorithms.ppo import clipped_surrogate_loss, joint_log_ratio, value_loss
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.cmat import CMATNetwork
+from cmat.networks.cmat import CMATNetwork, PolicyOutput
+
+
+class LatentSample(NamedTuple):
+    """What acting stores for a stochastic consensus: the latent and its log-probability."""
+
+    latent: jax.Array
+    """[] code (categorical) or [d] vector (gaussian)."""
+    log_prob: jax.Array
+    """[] log π_c(latent | O) under the collecting parameters."""
 
 
 @dataclass(frozen=True)
@@ -34,12 +51,24 @@ class CMAT:
     def act(
         self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
     ) -> ActResult:
-        output = self.network.apply(params, obs, action_mask)
+        latent = {}
+        if self.stochastic:
+            latent_key, key = jax.random.split(key)
+            latent = {"latent_key": latent_key}
+        output = self.network.apply(params, obs, action_mask, **latent)
         distribution = action_distribution(
             output.action_params, output.log_std, self.network.discrete
         )
         actions, log_probs = distribution.sample_and_log_prob(seed=key)
+        if self.stochastic:
+            return ActResult(
+                actions, log_probs, output.value, LatentSample(output.latent, output.latent_log_prob)
+            )
         return ActResult(actions, log_probs, output.value)
+
+    @property
+    def stochastic(self) -> bool:
+        return self.network.config.consensus_policy != "deterministic"
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         output = self.network.apply(params, obs, action_mask)
@@ -48,15 +77,29 @@ class CMAT:
     def value(self, params: Params, obs: jax.Array) -> jax.Array:
         return self.network.apply(params, obs, method="value")
 
-    def loss(
-        self, params: Params, batch: Batch, ppo: PPOConfig
-    ) -> tuple[jax.Array, dict[str, jax.Array]]:
-        """Clipped surrogate on the joint ratio, mean per-agent entropy, team value loss."""
-        output = self.network.apply(params, batch.obs, batch.action_mask)
+    def log_ratio(
+        self, params: Params, batch: Batch
+    ) -> tuple[jax.Array, PolicyOutput, distrax.Distribution]:
+        """log π(A, z | O) − log π_old(A, z | O) per sample: Σ_i of the per-agent log-ratios
+        (eq. ratio), plus log π_c(z | O) − log π_c,old(z | O) with a stochastic consensus
+        (eq. joint-stochastic). Also returns the network output and the action distribution."""
+        sampled: LatentSample | tuple = batch.extras
+        latent = {"latent": sampled.latent} if self.stochastic else {}
+        output = self.network.apply(params, batch.obs, batch.action_mask, **latent)
         distribution = action_distribution(
             output.action_params, output.log_std, self.network.discrete
         )
         log_ratio = joint_log_ratio(distribution.log_prob(batch.actions), batch.log_probs)
+        if self.stochastic:
+            log_ratio = log_ratio + output.latent_log_prob - sampled.log_prob
+        return log_ratio, output, distribution
+
+    def loss(
+        self, params: Params, batch: Batch, ppo: PPOConfig
+    ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """Clipped surrogate on the joint ratio, mean per-agent entropy, team value loss; with a
+        stochastic consensus, π_c's entropy gets its own bonus."""
+        log_ratio, output, distribution = self.log_ratio(params, batch)
         policy_loss, diagnostics = clipped_surrogate_loss(
             log_ratio, batch.advantages, ppo.clip_eps
         )
@@ -66,9 +109,14 @@ class CMAT:
             ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,
         )
         total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
-        return total, {
+        metrics = {
             "policy_loss": policy_loss,
             "value_loss": critic_loss,
             "entropy": entropy,
             **diagnostics,
         }
+        if self.stochastic:
+            consensus_entropy = jnp.mean(output.latent_entropy)
+            total = total - ppo.consensus_ent_coef * consensus_entropy
+            metrics["consensus_entropy"] = consensus_entropy
+        return total, metrics

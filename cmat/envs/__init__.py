@@ -19,7 +19,9 @@ from cmat.errors import CmatError
 
 __all__ = ["ENV_PREFIXES", "AgentIdWrapper", "EnvSpec", "MarlEnv", "TimeStep", "make_env"]
 
-ENV_PREFIXES = ("matrix", "smax", "mpe")
+HOST_PREFIXES = ("pettingzoo", "mamujoco", "grf")
+"""Host suites (cmat.envs.host): stepped in Python by cmat.runners.host, not built here."""
+ENV_PREFIXES = ("matrix", "smax", "mpe", *HOST_PREFIXES)
 """Suites an environment id may name before the colon."""
 
 
@@ -65,6 +67,11 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
 
         factory = jaxmarl_envs.MPE_ENVS[_choose("MPE environment", name, jaxmarl_envs.MPE_ENVS)]
         options = jaxmarl_envs.MPE_OPTIONS
+    elif prefix in HOST_PREFIXES:
+        raise CmatError(
+            f"{env_id} is a host environment: build it with cmat.envs.host.make_host_env "
+            f"(the CLI's trainer does); make_env builds in-graph JAX environments only"
+        )
     else:
         raise CmatError(
             f"unknown environment prefix {prefix!r} in {env_id!r} (ids are PREFIX:NAME); "

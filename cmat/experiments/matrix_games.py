@@ -16,9 +16,12 @@ def greedy_joint_actions(trainer: Trainer, params: object) -> np.ndarray:
     return np.asarray(greedy(params, timestep.obs, timestep.action_mask))
 
 
-def train_and_count_optimum(config: TrainConfig, optimum: tuple[int, ...]) -> tuple[int, np.ndarray]:
-    """Train every seed of `config` in one chunk; how many end with the greedy joint `optimum`."""
+def train_and_count_optimum(config: TrainConfig) -> tuple[int, np.ndarray]:
+    """Train every seed of `config` in one chunk; how many end with a greedy joint action of the
+    game's highest payoff (any of them, where several tie), and every seed's joint action."""
     trainer = Trainer(config)
     state, _ = trainer.train_chunk(trainer.init())
     joint = greedy_joint_actions(trainer, state.params)
-    return int(np.sum(np.all(joint == np.asarray(optimum), axis=-1))), joint
+    payoff = np.asarray(trainer.setup.env.payoff)
+    optimal = payoff[joint[:, 0], joint[:, 1]] == payoff.max()
+    return int(np.sum(optimal)), joint

@@ -8,12 +8,18 @@ Order independence holds by construction: the encoder has no positional embeddin
 both compressors pool sets (invariant), so V and c are invariant and agent i's distribution
 depends only on ô_i and c. The decoder keeps a learned positional embedding over iterations
 (the paper keeps it "to be aware of the convergence process").
+
+With a stochastic consensus policy (`NetworkConfig.consensus_policy`, the paper's future-work
+variant, Appendix "A More General Framework"), a latent drawn from π_c(· | O) around μ(O)
+conditions the Actor-MLP in place of c, so the joint policy is a mixture of products
+(eq. joint-stochastic). π_c reads only the invariant c, so order independence still holds.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
+import distrax
 import jax
 import jax.numpy as jnp
 import flax.linen as nn
@@ -32,7 +38,14 @@ class PolicyOutput(NamedTuple):
     value: jax.Array
     """[...] team value V(O), in the value normaliser's space."""
     consensus: jax.Array
-    """[..., d] the final consensus c."""
+    """[..., d] the deterministic consensus μ(O)."""
+    latent: Any = None
+    """[...] code (categorical) or [..., d] vector (gaussian) the actors were conditioned on;
+    None for the deterministic consensus."""
+    latent_log_prob: Any = None
+    """[...] log π_c(latent | O); None for the deterministic consensus."""
+    latent_entropy: Any = None
+    """[...] entropy of π_c(· | O); None for the deterministic consensus."""
 
 
 class ActionHead(nn.Module):
@@ -61,6 +74,42 @@ class ValueHead(nn.Module):
     @nn.compact
     def __call__(self, e0: jax.Array) -> jax.Array:
         return dense(1, 1.0)(nn.gelu(dense(self.n_embd)(e0)))[..., 0]
+
+
+class LatentConsensus(nn.Module):
+    """π_c(z | O) around the deterministic consensus μ(O) (paper eq. joint-stochastic).
+
+    categorical: logits over K codes from a linear layer on μ(O); the actors see
+    μ(O) + embedding(z), whose table is initialised N(0, 1) so that codes start out as distinct
+    products. gaussian: z ~ N(μ(O), diag σ²) with a learned state-independent log σ (initial
+    σ = 1), sampled as μ + σ·ε; the actors see z. The mode (most likely code, or μ) is the greedy
+    choice.
+    """
+
+    policy: str
+    codes: int
+    n_embd: int
+    init_gain: float
+
+    def setup(self) -> None:
+        if self.policy == "categorical":
+            self.code_logits = dense(self.codes, self.init_gain)
+            self.code_embedding = self.param(
+                "code_embedding", nn.initializers.normal(1.0), (self.codes, self.n_embd)
+            )
+        else:
+            self.log_scale = self.param("log_scale", nn.initializers.zeros, (self.n_embd,))
+
+    def distribution(self, consensus: jax.Array) -> distrax.Distribution:
+        if self.policy == "categorical":
+            return distrax.Categorical(logits=self.code_logits(consensus))
+        return distrax.MultivariateNormalDiag(consensus, jnp.exp(self.log_scale))
+
+    def conditioning(self, consensus: jax.Array, latent: jax.Array) -> jax.Array:
+        """What the Actor-MLP sees in place of c, given the latent."""
+        if self.policy == "categorical":
+            return consensus + self.code_embedding[latent]
+        return latent
 
 
 class ConsensusDecoder(nn.Module):
@@ -116,13 +165,27 @@ class CMATNetwork(nn.Module):
         self.critic_mlp = ValueHead(cfg.n_embd)
         self.decoder = ConsensusDecoder(cfg.n_embd, cfg.n_head, cfg.n_block, self.iterations)
         self.actor_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd)
-        self.actor_mlp = ActionHead(cfg.n_embd, self.action_dim, self.discrete, cfg.init_gain)
+        stochastic = cfg.consensus_policy != "deterministic"
+        actor_gain = cfg.latent_head_gain if stochastic else cfg.init_gain
+        self.actor_mlp = ActionHead(cfg.n_embd, self.action_dim, self.discrete, actor_gain)
+        if stochastic:
+            self.latent_consensus = LatentConsensus(
+                cfg.consensus_policy, cfg.consensus_codes, cfg.n_embd, cfg.latent_head_gain
+            )
 
     def value(self, obs: jax.Array) -> jax.Array:
         """V(O) alone (encoder, Critic-Compressor, Critic-MLP): what the target critic needs."""
         return self.critic_mlp(self.critic_compressor(self.encoder(obs)))
 
-    def __call__(self, obs: jax.Array, action_mask: jax.Array) -> PolicyOutput:
+    def __call__(
+        self,
+        obs: jax.Array,
+        action_mask: jax.Array,
+        latent: jax.Array | None = None,
+        latent_key: jax.Array | None = None,
+    ) -> PolicyOutput:
+        """The policy and value; with a stochastic consensus the actors are conditioned on
+        `latent` if given, else on one sampled with `latent_key`, else on π_c's mode."""
         encoded = self.encoder(obs)
         e0 = self.critic_compressor(encoded)
         consensus_vectors = self.decoder(e0, encoded)
@@ -130,11 +193,24 @@ class CMATNetwork(nn.Module):
             consensus = consensus_vectors[..., -1, :]
         else:
             consensus = self.actor_compressor(consensus_vectors)
-        shared = jnp.broadcast_to(consensus[..., None, :], encoded.shape)
+        conditioning, latent_log_prob, latent_entropy = consensus, None, None
+        if self.config.consensus_policy != "deterministic":
+            distribution = self.latent_consensus.distribution(consensus)
+            if latent is None:
+                latent = (
+                    distribution.mode() if latent_key is None
+                    else distribution.sample(seed=latent_key)
+                )
+            conditioning = self.latent_consensus.conditioning(consensus, latent)
+            latent_log_prob, latent_entropy = distribution.log_prob(latent), distribution.entropy()
+        shared = jnp.broadcast_to(conditioning[..., None, :], encoded.shape)
         action_params, log_std = self.actor_mlp(jnp.concatenate([encoded, shared], axis=-1))
         if self.discrete:
             action_params = jnp.where(action_mask, action_params, MASKED_LOGIT)
-        return PolicyOutput(action_params, log_std, self.critic_mlp(e0), consensus)
+        return PolicyOutput(
+            action_params, log_std, self.critic_mlp(e0), consensus,
+            latent, latent_log_prob, latent_entropy,
+        )
 
 
 MASKED_LOGIT = -1e9

@@ -21,13 +21,16 @@ if TYPE_CHECKING:
 RESULT_KEYS = ("env_steps", "episode_return", "win_rate")
 
 
-def run_training(trainer: Trainer, run_dir: RunDir, resume: bool) -> None:
+def run_training(
+    trainer: Trainer, run_dir: RunDir, resume: bool, start: TrainerState | None = None
+) -> None:
     """Train in chunks of `updates_per_log` updates until `num_updates` are done.
 
     After each chunk: a train and an eval row per seed in metrics.csv and TensorBoard (where
     charts/steps_per_second counts the steps of all seeds), then the checkpoint. Resuming
     continues from the checkpoint and drops metric rows written after it. An interruption
-    leaves the rows and the checkpoint of the last completed chunk.
+    leaves the rows and the checkpoint of the last completed chunk. A new run starts from
+    `start` where given (a fine-tuning run's state, cmat.runners.finetune), else `trainer.init()`.
     """
     config = trainer.config
     if resume:
@@ -41,7 +44,7 @@ def run_training(trainer: Trainer, run_dir: RunDir, resume: bool) -> None:
         run_dir.write_config(config)
         run_dir.truncate_metrics(done)
     else:
-        state = trainer.init()
+        state = trainer.init() if start is None else start
         done = trainer.env_steps(state)
         run_dir.save_checkpoint(trainer.to_bytes(state), done)
     chunk_steps = config.updates_per_log * config.steps_per_update

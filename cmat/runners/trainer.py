@@ -20,6 +20,7 @@ import optax
 
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch, Params, Algorithm
+from cmat.algorithms.cmat_blocks import masked_optimizer
 from cmat.algorithms import ppo as ppo_lib
 from cmat.config import TrainConfig
 from cmat.envs import make_env
@@ -77,11 +78,19 @@ def build_setup(config: TrainConfig, env: MarlEnv | None = None) -> TrainSetup:
     one that holds only its `spec`, since it steps its environments outside the program)."""
     env = env if env is not None else make_env(config.env, **config.env_kwargs)
     algorithm = build_algorithm(config.algo, config.network, env.spec)
+    return TrainSetup(config, env, algorithm, build_optimizer(config))
+
+
+def build_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+    """Adam after global-norm clipping; a fine-tuning run (`config.finetune`) applies it only to
+    the blocks its stage trains and zero updates to the frozen ones (cmat_blocks)."""
     optimizer = optax.chain(
         optax.clip_by_global_norm(config.ppo.max_grad_norm),
         optax.adam(config.ppo.lr, eps=config.ppo.adam_eps),
     )
-    return TrainSetup(config, env, algorithm, optimizer)
+    if config.finetune is None:
+        return optimizer
+    return masked_optimizer(optimizer, config.finetune)
 
 
 def init_state(setup: TrainSetup, rng: jax.Array) -> TrainerState:
@@ -380,15 +389,19 @@ class Trainer:
 
     def from_bytes(self, data: bytes) -> TrainerState:
         template = jax.eval_shape(self._init, self.seed_keys()[0])
-        template = jax.tree.map(
-            lambda x: jax.ShapeDtypeStruct((self.config.seeds, *x.shape), x.dtype), template
-        )
-        try:
-            restored = flax.serialization.from_bytes(template, data)
-        except Exception as error:  # msgpack and flax raise many types for bad bytes
-            raise CmatError(f"corrupt or incompatible checkpoint ({type(error).__name__})") from None
-        expected = jax.tree.map(lambda x: (x.shape, x.dtype), template)
-        found = jax.tree.map(lambda x: (np.shape(x), np.asarray(x).dtype), restored)
-        if expected != found:
-            raise CmatError("checkpoint does not match this run's config (shapes differ)")
-        return jax.tree.map(jnp.asarray, restored)
+        return restore_state(template, self.config.seeds, data)
+
+
+def restore_state(template: TrainerState, seeds: int, data: bytes) -> TrainerState:
+    """The all-seeds state serialised in `data`, checked against one seed's `template` (shapes
+    and dtypes, e.g. from `jax.eval_shape`)."""
+    template = jax.tree.map(lambda x: jax.ShapeDtypeStruct((seeds, *x.shape), x.dtype), template)
+    try:
+        restored = flax.serialization.from_bytes(template, data)
+    except Exception as error:  # msgpack and flax raise many types for bad bytes
+        raise CmatError(f"corrupt or incompatible checkpoint ({type(error).__name__})") from None
+    expected = jax.tree.map(lambda x: (x.shape, x.dtype), template)
+    found = jax.tree.map(lambda x: (np.shape(x), np.asarray(x).dtype), restored)
+    if expected != found:
+        raise CmatError("checkpoint does not match this run's config (shapes differ)")
+    return jax.tree.map(jnp.asarray, restored)

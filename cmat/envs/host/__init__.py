@@ -1,0 +1,68 @@
+"""Host environments: simulators stepped in Python, behind `cmat.envs.host.protocol.HostEnv`.
+
+`make_host_env("PREFIX:NAME", **options)` builds one of
+- `pettingzoo:package.module:factory`: any PettingZoo ParallelEnv the factory returns,
+- `mamujoco:SCENARIO-CONF`: Multi-Agent MuJoCo (gymnasium-robotics; extra `[mujoco]`),
+- `grf:SCENARIO`: Google Research Football academy scenarios (gfootball; scripts/install_grf.sh).
+
+They do not satisfy the in-graph `MarlEnv` protocol: `cmat.runners.host.HostTrainer` steps them
+(`cmat.envs.host.pool`) and runs the same jitted policy and update as the in-graph trainer.
+Suites are imported on first use.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from cmat.envs import HOST_PREFIXES
+from cmat.envs.host.protocol import HostAgentIdWrapper, HostEnv, HostTimeStep
+from cmat.errors import CmatError
+
+__all__ = [
+    "DEFAULT_WORKERS", "HOST_PREFIXES", "HostEnv", "HostTimeStep", "is_host_env", "make_host_env",
+]
+
+
+DEFAULT_WORKERS = {"pettingzoo": 0, "mamujoco": 0, "grf": 0}
+"""Worker processes per suite when the config leaves `host_workers` unset (0: in-process),
+picked by benchmarks/host_throughput.py on this project's 2-core machines (README, "Host
+environments"): in-process was as fast or faster for HalfCheetah 6x1 and GRF 3 vs 1, because
+the workers compete with XLA for the same two cores. With spare cores, GRF (7 ms a step) gains
+from `host_workers`."""
+
+
+def is_host_env(env_id: str) -> bool:
+    """Whether `env_id` names a host environment."""
+    return env_id.partition(":")[0] in HOST_PREFIXES
+
+
+def make_host_env(
+    env_id: str, agent_id: bool = False, seed: int | None = None, **kwargs: Any
+) -> HostEnv:
+    """Build the host env `env_id`; `agent_id` appends one-hot agent ids to observations;
+    `seed` seeds simulators that take their seed when built (GRF; others seed at `reset`)."""
+    prefix, _, name = env_id.partition(":")
+    env: HostEnv
+    if prefix == "pettingzoo":
+        from cmat.envs.host.pettingzoo_env import make_pettingzoo_env
+
+        env = make_pettingzoo_env(env_id, name, **kwargs)
+    elif prefix == "mamujoco":
+        from cmat.envs.host.mamujoco import make_mamujoco_env
+
+        env = make_mamujoco_env(env_id, name, **kwargs)
+    elif prefix == "grf":
+        from cmat.envs.host.grf import GRFEnv
+
+        env = GRFEnv(env_id, name, seed=seed or 0, **kwargs)
+    else:
+        raise CmatError(
+            f"unknown host environment prefix {prefix!r} in {env_id!r}; "
+            f"available: {', '.join(HOST_PREFIXES)}"
+        )
+    return HostAgentIdWrapper(env) if agent_id else env
+
+
+def default_workers(env_id: str) -> int:
+    """The measured default number of worker processes for `env_id`'s suite."""
+    return DEFAULT_WORKERS.get(env_id.partition(":")[0], 0)

@@ -1,0 +1,298 @@
+"""An experiment spec: a grid of environments × algorithms × variants × seeds, read from YAML.
+
+```yaml
+name: smoke                       # default: the file's stem
+steps: 2000                       # env steps per seed of every run (an env or variant may override)
+seeds: 2                          # seeds seed .. seed+seeds-1 of every cell
+seed: 0
+seeds_per_run: 2                  # seeds trained together in one (vmapped) run; default: all
+set: {num_envs: 4, ppo: {epochs: 2}}      # config overrides for every run (or a list of k=v)
+envs:
+  - matrix:fig1
+  - {id: smax:MMM2, steps: 10000000, set: [...], label: MMM2, unavailable: "why"}
+algos: [cmat, mat]
+variants:                         # default: {default: {}}
+  default: {}
+  m_half: {algos: [cmat], set: {network.consensus_iterations: n/2}, figure: ablation,
+           label: "m = n/2"}
+  finetune_action: {algos: [cmat], from: default, finetune: action, steps: 1000,
+                    label: "CMAT-finetune (action)"}
+bootstrap_reps: 2000              # bootstrap replications of the aggregate statistics
+```
+
+A variant with `from` is a fine-tuning stage: it starts from the finished run of variant `from`
+with the same environment, algorithm and seeds (`cmat finetune`), and its `set` applies on top
+of that run's config. `figure` puts a variant in the Fig. 3-style figure (`main`, the default),
+the Fig. 4-style one (`ablation`, which draws CMAT lines only), both (`[main, ablation]`, e.g. the
+default variant as the ablation's reference) or neither (`none`). An env with `unavailable` is reported and
+skipped without being tried.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from cmat.config import ALGORITHMS, FINETUNE_MODES
+from cmat.errors import CmatError
+
+FIGURES = ("main", "ablation", "none")
+SPEC_KEYS = ("name", "description", "steps", "seeds", "seed", "seeds_per_run", "set", "envs",
+             "algos", "variants", "bootstrap_reps")
+ENV_KEYS = ("id", "steps", "set", "label", "unavailable")
+VARIANT_KEYS = ("algos", "set", "steps", "from", "finetune", "figure", "label")
+ALGO_LABELS = {"cmat": "CMAT", "mat": "MAT", "pmat": "PMAT", "triple_bert": "Triple-BERT",
+               "happo": "HAPPO", "mappo": "MAPPO"}
+
+
+@dataclass(frozen=True)
+class EnvEntry:
+    id: str
+    steps: int
+    overrides: tuple[str, ...]
+    label: str
+    unavailable: str | None
+    """Why the spec marks this environment as not runnable (it is then never tried)."""
+
+    @property
+    def slug(self) -> str:
+        return self.id.replace(":", "_").replace("/", "_")
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str
+    algos: tuple[str, ...]
+    overrides: tuple[str, ...]
+    steps: int | None
+    base: str | None
+    """The variant a fine-tuning stage starts from (`from`)."""
+    finetune: str | None
+    figures: tuple[str, ...]
+    """Which figures draw this variant: 'main' (Fig. 3 style), 'ablation' (Fig. 4 style, CMAT
+    lines only)."""
+    label: str | None
+
+    def line_label(self, algo: str) -> str:
+        """The legend entry of this variant's `algo` runs."""
+        if self.label is None:
+            name = ALGO_LABELS.get(algo, algo)
+            return name if self.name == "default" else f"{name} ({self.name})"
+        return self.label if len(self.algos) == 1 else f"{ALGO_LABELS.get(algo, algo)} {self.label}"
+
+
+@dataclass(frozen=True)
+class ExperimentSpec:
+    name: str
+    path: Path
+    envs: tuple[EnvEntry, ...]
+    algos: tuple[str, ...]
+    variants: tuple[Variant, ...]
+    seeds: int
+    seed: int
+    seeds_per_run: int
+    overrides: tuple[str, ...]
+    bootstrap_reps: int
+
+    def variant(self, name: str) -> Variant:
+        return next(v for v in self.variants if v.name == name)
+
+    def seed_groups(self) -> list[tuple[int, int]]:
+        """(first seed, number of seeds) of each run of a cell."""
+        starts = range(self.seed, self.seed + self.seeds, self.seeds_per_run)
+        return [(s, min(self.seeds_per_run, self.seed + self.seeds - s)) for s in starts]
+
+
+def load_spec(path: Path) -> ExperimentSpec:
+    """Read and check a spec; every problem is a one-line CmatError naming the file and key."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise CmatError(f"experiment spec not found: {path}") from None
+    except yaml.YAMLError as error:
+        first = str(error).strip().splitlines()[0]
+        raise CmatError(f"experiment spec {path} is not valid YAML: {first}") from None
+    where = f"experiment spec {path}"
+    if not isinstance(raw, dict):
+        raise CmatError(f"{where} must hold a mapping of keys to values")
+    check_keys(raw, SPEC_KEYS, where)
+    for key in ("envs", "algos", "steps"):
+        if key not in raw:
+            raise CmatError(f"{where}: missing key {key!r}")
+    steps = positive_int(raw["steps"], f"{where}: steps")
+    seeds = positive_int(raw.get("seeds", 1), f"{where}: seeds")
+    seed = integer(raw.get("seed", 0), f"{where}: seed")
+    seeds_per_run = positive_int(raw.get("seeds_per_run", seeds), f"{where}: seeds_per_run")
+    algos = algo_list(raw["algos"], f"{where}: algos")
+    envs = tuple(env_entry(item, steps, f"{where}: envs[{i}]")
+                 for i, item in enumerate(listed(raw["envs"], f"{where}: envs")))
+    ids = [env.id for env in envs]
+    if len(set(ids)) != len(ids):
+        twice = min(i for i in ids if ids.count(i) > 1)
+        raise CmatError(f"{where}: envs lists {twice!r} twice")
+    variants_raw = raw.get("variants") or {"default": {}}
+    if not isinstance(variants_raw, dict):
+        raise CmatError(f"{where}: variants must be a mapping of names to settings")
+    variants = tuple(variant(str(name), settings, algos, f"{where}: variants.{name}")
+                     for name, settings in variants_raw.items())
+    check_stages(variants, where)
+    return ExperimentSpec(
+        name=str(raw.get("name") or path.stem),
+        path=path,
+        envs=envs,
+        algos=algos,
+        variants=variants,
+        seeds=seeds,
+        seed=seed,
+        seeds_per_run=min(seeds_per_run, seeds),
+        overrides=overrides(raw.get("set"), f"{where}: set"),
+        bootstrap_reps=positive_int(raw.get("bootstrap_reps", 2000), f"{where}: bootstrap_reps"),
+    )
+
+
+def env_entry(item: Any, steps: int, where: str) -> EnvEntry:
+    if isinstance(item, str):
+        item = {"id": item}
+    if not isinstance(item, dict) or "id" not in item:
+        raise CmatError(f"{where} must be an environment id or a mapping with an id")
+    check_keys(item, ENV_KEYS, where)
+    env_id = item["id"]
+    if not isinstance(env_id, str) or ":" not in env_id:
+        raise CmatError(f"{where}: id must look like PREFIX:NAME, got {env_id!r}")
+    unavailable = item.get("unavailable")
+    if unavailable is not None and not isinstance(unavailable, str):
+        raise CmatError(f"{where}: unavailable must be a reason (text)")
+    return EnvEntry(
+        id=env_id,
+        steps=positive_int(item.get("steps", steps), f"{where}: steps"),
+        overrides=overrides(item.get("set"), f"{where}: set"),
+        label=str(item.get("label", env_id)),
+        unavailable=unavailable,
+    )
+
+
+def variant(name: str, settings: Any, algos: tuple[str, ...], where: str) -> Variant:
+    settings = {} if settings is None else settings
+    if not isinstance(settings, dict):
+        raise CmatError(f"{where} must be a mapping of settings")
+    check_keys(settings, VARIANT_KEYS, where)
+    base, finetune = settings.get("from"), settings.get("finetune")
+    if (base is None) != (finetune is None):
+        raise CmatError(f"{where}: a fine-tuning stage needs both 'from' (a variant) and "
+                        f"'finetune' ({' or '.join(FINETUNE_MODES)})")
+    if finetune is not None and finetune not in FINETUNE_MODES:
+        raise CmatError(f"{where}: finetune must be one of {', '.join(FINETUNE_MODES)}, "
+                        f"got {finetune!r}")
+    variant_algos = algo_list(settings["algos"], f"{where}: algos") if "algos" in settings else algos
+    if finetune is not None and variant_algos != ("cmat",):
+        raise CmatError(f"{where}: fine-tuning freezes CMAT's blocks; give it algos: [cmat]")
+    figure = settings.get("figure", "main")
+    figures = tuple(figure) if isinstance(figure, list) else (figure,)
+    for kind in figures:
+        if kind not in FIGURES:
+            raise CmatError(f"{where}: figure must be one or a list of {', '.join(FIGURES)}, "
+                            f"got {kind!r}")
+    steps = settings.get("steps")
+    label = settings.get("label")
+    return Variant(
+        name=name,
+        algos=variant_algos,
+        overrides=overrides(settings.get("set"), f"{where}: set"),
+        steps=None if steps is None else positive_int(steps, f"{where}: steps"),
+        base=None if base is None else str(base),
+        finetune=finetune,
+        figures=tuple(f for f in figures if f != "none"),
+        label=None if label is None else str(label),
+    )
+
+
+def check_stages(variants: tuple[Variant, ...], where: str) -> None:
+    """Every `from` names another variant that runs the same algorithms; no cycles."""
+    by_name = {v.name: v for v in variants}
+    for v in variants:
+        if v.base is None:
+            continue
+        if v.base not in by_name:
+            raise CmatError(f"{where}: variants.{v.name}: from names no variant: {v.base!r}")
+        missing = sorted(set(v.algos) - set(by_name[v.base].algos))
+        if missing:
+            raise CmatError(f"{where}: variants.{v.name}: variant {v.base!r} it starts from "
+                            f"has no {missing[0]} runs")
+        seen, current = {v.name}, by_name[v.base]
+        while current.base is not None:
+            if current.name in seen:
+                raise CmatError(f"{where}: variants.{v.name}: fine-tuning stages form a cycle")
+            seen.add(current.name)
+            current = by_name[current.base]
+        if current.name in seen:
+            raise CmatError(f"{where}: variants.{v.name}: fine-tuning stages form a cycle")
+
+
+def overrides(value: Any, where: str) -> tuple[str, ...]:
+    """`key=value` strings from a list of them or a (nested) mapping; values as JSON (which
+    OmegaConf's dotlist reads as YAML), so lists and strings like 'n/2' keep their type."""
+    if value is None:
+        return ()
+    if isinstance(value, dict):
+        return tuple(f"{key}={json.dumps(item)}" for key, item in flatten(value))
+    if isinstance(value, list) and all(isinstance(item, str) and "=" in item for item in value):
+        return tuple(value)
+    raise CmatError(f"{where} must be a mapping or a list of key=value strings")
+
+
+def flatten(mapping: dict, prefix: str = "") -> list[tuple[str, Any]]:
+    items: list[tuple[str, Any]] = []
+    for key, value in mapping.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict) and value:
+            items.extend(flatten(value, f"{name}."))
+        else:
+            items.append((name, value))
+    return items
+
+
+def check_keys(mapping: dict, allowed: tuple[str, ...], where: str) -> None:
+    unknown = sorted(str(key) for key in mapping if key not in allowed)
+    if unknown:
+        raise CmatError(f"{where}: unknown key {unknown[0]!r}; allowed: {', '.join(allowed)}")
+
+
+def listed(value: Any, where: str) -> list:
+    if not isinstance(value, list) or not value:
+        raise CmatError(f"{where} must be a non-empty list")
+    return value
+
+
+def algo_list(value: Any, where: str) -> tuple[str, ...]:
+    names = listed(value, where)
+    for name in names:
+        if name not in ALGORITHMS:
+            raise CmatError(f"{where}: unknown algorithm {name!r}; available: "
+                            f"{', '.join(ALGORITHMS)}")
+    if len(set(names)) != len(names):
+        raise CmatError(f"{where} lists an algorithm twice")
+    return tuple(names)
+
+
+def integer(value: Any, where: str) -> int:
+    """An integer, also written as 1e7 (which YAML reads as text) or 1.0e+7."""
+    if isinstance(value, str):
+        try:
+            value = float(value)
+        except ValueError:
+            pass
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
+        raise CmatError(f"{where} must be an integer, got {value!r}")
+    return int(value)
+
+
+def positive_int(value: Any, where: str) -> int:
+    number = integer(value, where)
+    if number <= 0:
+        raise CmatError(f"{where} must be > 0, got {value!r}")
+    return number

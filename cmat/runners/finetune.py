@@ -1,0 +1,71 @@
+"""Fine-tuning (Algorithm 1, B): a new run that continues a CMAT run's parameters with a block
+frozen.
+
+What carries over from the source checkpoint: the parameters, the target critic and the value
+normaliser's statistics (the critic's outputs live in its normalised space). What starts fresh:
+the optimizer state, because the masked optimizer's state has another structure and Adam's
+moments were accumulated on the joint objective (Adam restarts with its bias correction, so the
+first steps are about lr in size); the environments, the update counter (a fine-tuning run
+counts its own env steps from 0, as the paper's fine-tuning curves do) and the random stream.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import jax
+
+from cmat.config import TrainConfig, load_config, validate
+from cmat.errors import CmatError
+
+if TYPE_CHECKING:
+    from cmat.runners.trainer import Trainer, TrainerState
+
+FIXED_FIELDS = ("env", "env_kwargs", "algo", "seeds", "seed", "network")
+"""What a fine-tuning run cannot change: the checkpoint holds parameters for exactly these."""
+
+
+def finetune_config(
+    source: TrainConfig,
+    source_dir: Path,
+    mode: str,
+    steps: int | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+) -> TrainConfig:
+    """The source run's config with the fine-tuning stage, its budget and `key=value` overrides
+    (e.g. a lower ppo.lr) applied."""
+    if source.algo != "cmat":
+        raise CmatError(
+            f"fine-tuning freezes CMAT's blocks; {source_dir} is a {source.algo!r} run"
+        )
+    config = load_config(None, overrides, base=source)
+    changed = [name for name in FIXED_FIELDS if getattr(config, name) != getattr(source, name)]
+    if changed:
+        raise CmatError(
+            f"fine-tuning cannot change {changed[0]} of the source run "
+            f"(its checkpoint holds the parameters for it)"
+        )
+    config = dataclasses.replace(
+        config,
+        finetune=mode,
+        finetune_from=str(source_dir),
+        total_steps=steps if steps is not None else config.total_steps,
+    )
+    return validate(config)
+
+
+def finetune_start(trainer: Trainer, source_trainer: Trainer, data: bytes) -> TrainerState:
+    """The first state of a fine-tuning run: `trainer`'s fresh state carrying the source
+    checkpoint's parameters, target critic and value normaliser, with a fresh optimizer state
+    for `trainer`'s masked optimizer."""
+    source = source_trainer.from_bytes(data)
+    fresh = trainer.init()
+    return fresh.replace(
+        params=source.params,
+        target_params=source.target_params,
+        value_norm=source.value_norm,
+        opt_state=jax.vmap(trainer.setup.optimizer.init)(source.params),
+        rng=jax.vmap(lambda key: jax.random.fold_in(key, 1))(fresh.rng),
+    )

@@ -1,0 +1,292 @@
+"""`cmat experiment`: the shipped smoke grid end to end, killed and resumed, corrupt and partial
+run directories redone, unavailable environments skipped, bad specs rejected, statistics."""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from rliable import metrics as rliable_metrics
+
+from cmat.cli import main
+from cmat.errors import CmatError
+from cmat.experiments.report import improvement_probability, iqm
+from cmat.rundir import RunDir
+
+REPO = Path(__file__).resolve().parents[1]
+SMOKE = REPO / "experiments" / "smoke.yaml"
+CMAT_RUN = "runs/matrix_fig1/default/cmat-s0-1"
+MAT_RUN = "runs/matrix_fig1/default/mat-s0-1"
+STAGE_RUN = "runs/matrix_fig1/finetune_action/cmat-s0-1"
+
+
+def one_error_line(stderr: str) -> str:
+    assert "Traceback" not in stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cmat: error: "), stderr
+    return lines[0]
+
+
+def experiment(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cmat", "experiment", *args],
+                          capture_output=True, text=True, timeout=1200, check=False)
+
+
+def checkpoint_steps(run: Path) -> int:
+    try:
+        return RunDir(run).load_checkpoint()[1]
+    except (CmatError, OSError):
+        return -1
+
+
+def group_alive(group: int) -> bool:
+    try:
+        os.killpg(group, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def grid(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, str]:
+    """The smoke grid killed (SIGKILL to the experiment process alone) once its first run is
+    complete and its second half done, then run again to the end."""
+    out = tmp_path_factory.mktemp("experiment") / "smoke"
+    log = out.parent / "killed.log"
+    with log.open("w") as file:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "cmat", "experiment", str(SMOKE), "--out", str(out)],
+            stdout=file, stderr=subprocess.STDOUT, start_new_session=True,
+        )
+    try:
+        deadline = time.monotonic() + 900
+        while checkpoint_steps(out / MAT_RUN) != 500:
+            assert process.poll() is None, log.read_text()
+            assert time.monotonic() < deadline, log.read_text()
+            time.sleep(0.1)
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
+        deadline = time.monotonic() + 30
+        while group_alive(process.pid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not group_alive(process.pid), "a run outlived the killed experiment"
+    finally:
+        if group_alive(process.pid):
+            os.killpg(process.pid, signal.SIGKILL)
+    assert checkpoint_steps(out / CMAT_RUN) == 1000
+    finished = (out / CMAT_RUN / "checkpoints" / "latest.ckpt").read_bytes()
+    done = experiment(str(SMOKE), "--out", str(out))
+    assert done.returncode == 0, done.stdout + done.stderr
+    return out, finished, done.stdout
+
+
+def test_killed_grid_resumes_without_redoing_finished_runs(grid: tuple[Path, bytes, str]) -> None:
+    out, finished, stdout = grid
+    assert f"reuse   {CMAT_RUN.removeprefix('runs/')}: complete at 1000 env steps" in stdout
+    assert f"resume  {MAT_RUN.removeprefix('runs/')}: at 500 of 1000 env steps" in stdout
+    assert f"[start] {CMAT_RUN.removeprefix('runs/')}" not in stdout
+    assert (out / CMAT_RUN / "checkpoints" / "latest.ckpt").read_bytes() == finished
+    for run in (CMAT_RUN, MAT_RUN):
+        assert checkpoint_steps(out / run) == 1000
+        rows = RunDir(out / run).read_metrics()
+        keys = Counter((r["kind"], r["seed"], r["env_steps"]) for r in rows)
+        assert set(keys.values()) == {1} and len(keys) == 2 * 2 * 2
+    assert checkpoint_steps(out / STAGE_RUN) == 500
+    stage = RunDir(out / STAGE_RUN).config()
+    assert stage.finetune == "action" and stage.finetune_from == str(out / CMAT_RUN)
+
+
+def test_grid_writes_figures_table_and_statistics(grid: tuple[Path, bytes, str]) -> None:
+    out, _, stdout = grid
+    for name in ("figure_main.png", "figure_ablation.png"):
+        assert (out / name).read_bytes().startswith(b"\x89PNG")
+        assert f"wrote {out / name}" in stdout
+    table = (out / "results.md").read_text()
+    assert "| task | metric | steps | CMAT | MAT | CMAT-finetune (action) |" in table
+    assert "| Fig. 1 matrix game | episode return | 1,000 | " in table
+    assert "| Fig. 1 matrix game | CMAT | 2 | mixture |" in table
+    assert "| CMAT > MAT |" in table and "IQM [95% CI]" in table
+    assert (out / "spec.yaml").read_text() == SMOKE.read_text()
+
+
+def copy_grid(grid: tuple[Path, bytes, str], tmp_path: Path) -> Path:
+    return Path(shutil.copytree(grid[0], tmp_path / "smoke", ignore=shutil.ignore_patterns(".lock")))
+
+
+def test_corrupt_and_partial_run_directories_are_reported_and_redone(
+    grid: tuple[Path, bytes, str], tmp_path: Path
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    checkpoint = out / MAT_RUN / "checkpoints" / "latest.ckpt"
+    raw = checkpoint.read_bytes()
+    checkpoint.write_bytes(raw[: len(raw) // 2] + bytes(b ^ 0xFF for b in raw[len(raw) // 2:]))
+    shutil.rmtree(out / STAGE_RUN / "checkpoints")
+    reused = (out / CMAT_RUN / "checkpoints" / "latest.ckpt").read_bytes()
+
+    done = experiment(str(SMOKE), "--out", str(out))
+    assert done.returncode == 0, done.stdout + done.stderr
+    mat, stage = MAT_RUN.removeprefix("runs/"), STAGE_RUN.removeprefix("runs/")
+    assert f"redo    {mat}: corrupt checkpoint: {checkpoint} (checksum mismatch)" in done.stdout
+    assert f"redo    {stage}: no checkpoint in {out / STAGE_RUN}" in done.stdout
+    assert f"[start] {mat} (redo" in done.stdout and f"[start] {stage} (redo" in done.stdout
+    assert len(list((out / "discarded").iterdir())) == 2
+    assert checkpoint_steps(out / MAT_RUN) == 1000 and checkpoint_steps(out / STAGE_RUN) == 500
+    assert (out / CMAT_RUN / "checkpoints" / "latest.ckpt").read_bytes() == reused
+    assert "corrupt checkpoint" in (out / "results.md").read_text()
+
+
+def test_plan_changes_are_detected_without_running(
+    grid: tuple[Path, bytes, str], tmp_path: Path
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    (out / STAGE_RUN / "metrics.csv").unlink()
+    spec = yaml.safe_load(SMOKE.read_text())
+    longer = tmp_path / "longer.yaml"
+    longer.write_text(yaml.safe_dump({**spec, "steps": 2000}))
+    done = experiment(str(longer), "--out", str(out), "--dry-run")
+    assert done.returncode == 0, done.stderr
+    assert f"resume  {CMAT_RUN.removeprefix('runs/')}: at 1000 of 2000 env steps" in done.stdout
+    assert (f"redo    {STAGE_RUN.removeprefix('runs/')}: its base run is not complete yet"
+            in done.stdout)
+    spec["set"]["ppo"]["epochs"] = 3
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(yaml.safe_dump(spec))
+    done = experiment(str(changed), "--out", str(out), "--dry-run")
+    assert (f"redo    {MAT_RUN.removeprefix('runs/')}: config differs from the spec "
+            f"(ppo.epochs: 2, spec 3)") in done.stdout
+    assert not (out / "discarded").exists()
+
+    done = experiment(str(SMOKE), "--out", str(out), "--dry-run")
+    assert (f"redo    {STAGE_RUN.removeprefix('runs/')}: metrics.csv lacks the eval rows of its "
+            f"checkpoint at 500 env steps") in done.stdout
+
+
+def test_unavailable_environments_are_reported_and_skipped(
+    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    spec = yaml.safe_load(SMOKE.read_text())
+    spec["envs"] += ["nope:x", {"id": "smax:3m", "unavailable": "left out on purpose"}]
+    path = tmp_path / "more.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    assert main(["experiment", str(path), "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert "skip    nope:x: unavailable: unknown environment prefix 'nope'" in stdout
+    assert "skip    smax:3m: unavailable: marked unavailable in the spec: left out on purpose" \
+        in stdout
+    assert "[start]" not in stdout
+    table = (out / "results.md").read_text()
+    assert "| smax:3m | — | 1,000 | unavailable: marked unavailable in the spec" in table
+    assert "unavailable: marked unavailable in the spec: left out on purpose" in table
+    assert (out / "figure_main.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_one_experiment_at_a_time(grid: tuple[Path, bytes, str], tmp_path: Path,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = copy_grid(grid, tmp_path)
+    with (out / ".lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        assert main(["experiment", str(SMOKE), "--out", str(out)]) == 2
+    assert "another cmat experiment is running in" in one_error_line(capsys.readouterr().err)
+
+
+SPEC = {"steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"]}
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"stpes": 5}, "unknown key 'stpes'; allowed:"),
+        ({"algos": ["cmat", "nope"]}, "algos: unknown algorithm 'nope'"),
+        ({"envs": []}, "envs must be a non-empty list"),
+        ({"envs": ["fig1"]}, "envs[0]: id must look like PREFIX:NAME"),
+        ({"steps": 0}, "steps must be > 0, got 0"),
+        ({"seeds": "many"}, "seeds must be an integer, got 'many'"),
+        ({"set": ["ppo.nope=1"]}, "matrix:fig1 / default / cmat: invalid config: Key 'nope'"),
+        ({"set": {"network": {"consensus_iterations": "3n"}}}, "must be >= 0, got '3n'"),
+        ({"variants": {"ft": {"finetune": "action"}}}, "needs both 'from' (a variant) and"),
+        ({"variants": {"a": {}, "ft": {"from": "b", "finetune": "action"}}},
+         "from names no variant: 'b'"),
+        ({"variants": {"a": {"algos": ["mat"]}, "ft": {"from": "a", "finetune": "action"}}},
+         "variant 'a' it starts from has no cmat runs"),
+        ({"variants": {"a": {}, "ft": {"from": "a", "finetune": "action", "algos": ["mat"]}}},
+         "fine-tuning freezes CMAT's blocks; give it algos: [cmat]"),
+        ({"variants": {"a": {"from": "b", "finetune": "action"},
+                       "b": {"from": "a", "finetune": "consensus"}}}, "form a cycle"),
+        ({"variants": {"a": {"figure": "fig3"}}}, "figure must be one or a list of"),
+    ],
+)
+def test_bad_specs_are_one_error_line(
+    change: dict, message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({**SPEC, **change}))
+    assert main(["experiment", str(path), "--out", str(tmp_path / "out")]) == 2
+    assert message in one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_unreadable_specs_and_options_are_one_error_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["experiment", str(tmp_path / "missing.yaml")]) == 2
+    assert "experiment spec not found" in one_error_line(capsys.readouterr().err)
+    path = tmp_path / "broken.yaml"
+    path.write_text("envs: [unclosed\n")
+    assert main(["experiment", str(path)]) == 2
+    assert "is not valid YAML" in one_error_line(capsys.readouterr().err)
+    path.write_text(yaml.safe_dump(SPEC))
+    assert main(["experiment", str(path), "--parallel", "0"]) == 2
+    assert "--parallel must be > 0" in one_error_line(capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("name", ["paper_main.yaml", "paper_ablation.yaml", "smoke.yaml"])
+def test_shipped_specs_plan(name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["experiment", str(REPO / "experiments" / name), "--out", str(tmp_path / "x"),
+                 "--dry-run"]) == 0
+    assert "runs in" in capsys.readouterr().out
+
+
+def test_statistics_equal_rliables() -> None:
+    rng = np.random.default_rng(3)
+    x = rng.integers(0, 4, size=(5, 3)).astype(float)
+    y = rng.integers(0, 4, size=(4, 3)).astype(float)
+    assert iqm(x) == pytest.approx(rliable_metrics.aggregate_iqm(x))
+    assert improvement_probability(x, y) == pytest.approx(
+        rliable_metrics.probability_of_improvement(x, y)
+    )
+    batched = improvement_probability(np.stack([x, x[::-1]]), np.stack([y, y]))
+    assert batched == pytest.approx([rliable_metrics.probability_of_improvement(x, y)] * 2)
+
+
+@pytest.mark.slow
+def test_ray_runs_a_grid_on_a_local_cluster(tmp_path: Path) -> None:
+    pytest.importorskip("ray")
+    spec = yaml.safe_load(SMOKE.read_text())
+    spec.update(steps=500, seeds=1, algos=["cmat"])
+    spec["variants"]["finetune_action"]["steps"] = 500
+    path = tmp_path / "ray.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    done = experiment(str(path), "--out", str(tmp_path / "out"), "--ray", "local")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert checkpoint_steps(tmp_path / "out" / "runs/matrix_fig1/finetune_action/cmat-s0") == 500
+
+
+def test_ray_address_without_ray_is_one_error_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)
+    path = tmp_path / "spec.yaml"
+    path.write_text(yaml.safe_dump(SPEC))
+    assert main(["experiment", str(path), "--out", str(tmp_path / "out"), "--ray", "auto"]) == 2
+    assert "--ray needs Ray: pip install 'cmat[ray]'" in one_error_line(capsys.readouterr().err)
