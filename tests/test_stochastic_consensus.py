@@ -32,8 +32,8 @@ def acted(policy: str) -> tuple[CMAT, object, Batch]:
     obs_key, mask_key, init_key, act_key = jax.random.split(jax.random.PRNGKey(0), 4)
     obs = jax.random.normal(obs_key, (TEAMS, AGENTS, OBS_DIM))
     mask = jax.random.bernoulli(mask_key, 0.6, (TEAMS, AGENTS, ACTIONS)).at[..., 0].set(True)
-    params = algorithm.init(init_key, obs[0], mask[0])
-    result = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+    params = jax.jit(algorithm.init)(init_key, obs[0], mask[0])
+    result = jax.jit(jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0)))(
         params, obs, mask, jax.random.split(act_key, TEAMS)
     )
     batch = Batch(
@@ -54,17 +54,17 @@ def log_softmax(x: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("policy", POLICIES)
 def test_log_prob_of_a_sampled_latent_and_joint_action_is_the_sum_of_its_parts(policy: str) -> None:
     algorithm, params, batch = acted(policy)
-    output = algorithm.network.apply(params, batch.obs, batch.action_mask, latent=batch.extras.latent)
+    apply = jax.jit(lambda latent: algorithm.network.apply(
+        params, batch.obs, batch.action_mask, latent=latent
+    ))
+    output = apply(batch.extras.latent)
     per_agent = np.take_along_axis(
         log_softmax(output.action_params), np.asarray(batch.actions)[..., None], -1
     )[..., 0]
     if policy == "categorical":
-        every_code = np.stack([
-            algorithm.network.apply(
-                params, batch.obs, batch.action_mask, latent=jnp.full(TEAMS, code)
-            ).latent_log_prob
-            for code in range(4)
-        ], axis=-1)
+        every_code = np.stack(
+            [apply(jnp.full(TEAMS, code)).latent_log_prob for code in range(4)], axis=-1
+        )
         np.testing.assert_allclose(np.exp(every_code).sum(-1), 1.0, rtol=1e-5)
         latent_part = every_code[np.arange(TEAMS), np.asarray(batch.extras.latent)]
         assert len(np.unique(np.asarray(batch.extras.latent))) > 1
@@ -84,11 +84,12 @@ def test_joint_ratio_is_one_at_the_collecting_parameters_and_moves_with_the_late
     policy: str,
 ) -> None:
     algorithm, params, batch = acted(policy)
-    log_ratio, _, _ = algorithm.log_ratio(params, batch)
+    log_ratio_fn = jax.jit(algorithm.log_ratio)
+    log_ratio, _, _ = log_ratio_fn(params, batch)
     np.testing.assert_allclose(log_ratio, 0.0, atol=1e-5)
     shifted = jax.tree.map(lambda x: x + 0.05, params["params"]["latent_consensus"])
     moved = {"params": {**params["params"], "latent_consensus": shifted}}
-    moved_ratio, output, _ = algorithm.log_ratio(moved, batch)
+    moved_ratio, output, _ = log_ratio_fn(moved, batch)
     expected = np.asarray(output.latent_log_prob) - np.asarray(batch.extras.log_prob)
     if policy == "gaussian":
         np.testing.assert_allclose(moved_ratio, expected, rtol=1e-4, atol=1e-4)
@@ -150,11 +151,11 @@ def test_permuting_agents_permutes_policies_given_the_latent_and_keeps_the_conse
 ) -> None:
     algorithm, params, batch = acted(policy)
     permutation = np.array([2, 0, 3, 1])
-    latent = batch.extras.latent
-    original = algorithm.network.apply(params, batch.obs, batch.action_mask, latent=latent)
-    permuted = algorithm.network.apply(
-        params, batch.obs[:, permutation], batch.action_mask[:, permutation], latent=latent
-    )
+    apply = jax.jit(lambda obs, mask: algorithm.network.apply(
+        params, obs, mask, latent=batch.extras.latent
+    ))
+    original = apply(batch.obs, batch.action_mask)
+    permuted = apply(batch.obs[:, permutation], batch.action_mask[:, permutation])
     for field in ("value", "consensus", "latent_log_prob", "latent_entropy"):
         np.testing.assert_allclose(
             getattr(permuted, field), getattr(original, field), rtol=1e-4, atol=1e-4
@@ -162,8 +163,9 @@ def test_permuting_agents_permutes_policies_given_the_latent_and_keeps_the_conse
     np.testing.assert_allclose(
         permuted.action_params, original.action_params[:, permutation], rtol=1e-4, atol=1e-4
     )
-    greedy = algorithm.greedy(params, batch.obs[0], batch.action_mask[0])
-    greedy_permuted = algorithm.greedy(
+    greedy_fn = jax.jit(algorithm.greedy)
+    greedy = greedy_fn(params, batch.obs[0], batch.action_mask[0])
+    greedy_permuted = greedy_fn(
         params, batch.obs[0][permutation], batch.action_mask[0][permutation]
     )
     np.testing.assert_array_equal(greedy_permuted, np.asarray(greedy)[permutation])
