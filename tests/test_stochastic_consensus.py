@@ -13,6 +13,7 @@ import pytest
 
 from cmat.algorithms.base import Batch
 from cmat.algorithms.cmat import CMAT
+from cmat.algorithms.cmat_blocks import FROZEN, TRAIN, finetune_labels
 from cmat.config import NetworkConfig, load_config
 from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
@@ -184,3 +185,13 @@ PENALTY_RUN = (
     "ppo.lr=1e-3",
 )
 """The budget benchmarks/matrix_optimum.py compares every method at on matrix:penalty."""
+
+
+@pytest.mark.parametrize("mode, trains_latent", [("consensus", True), ("action", False)])
+def test_fine_tuning_trains_the_consensus_policy_with_the_consensus_only(
+    mode: str, trains_latent: bool
+) -> None:
+    algorithm, params, _ = acted("categorical")
+    labels = finetune_labels(params, mode)["params"]
+    assert set(jax.tree.leaves(labels["latent_consensus"])) == {TRAIN if trains_latent else FROZEN}
+    assert set(jax.tree.leaves(labels["actor_mlp"])) == {FROZEN if trains_latent else TRAIN}
