@@ -342,9 +342,9 @@ def summarise(
 
 def markdown(plan: Plan, summary: dict[str, Any]) -> str:
     out = [f"# Experiment `{plan.spec.name}`", "",
-           f"Spec: `spec.yaml` (from `{plan.spec.path}`). Final greedy metric: each seed's last "
-           f"greedy evaluation, mean ± std over seeds (n = {plan.spec.seeds} unless marked). "
-           f"Metric: win rate where the environment defines one, else episode return.", ""]
+           (f"Spec: `spec.yaml` (from `{plan.spec.path}`). Final greedy metric: each seed's last "
+            f"greedy evaluation, mean ± std over seeds (n = {plan.spec.seeds} unless marked). "
+            f"Metric: win rate where the environment defines one, else episode return."), ""]
     main = labels_of(summary, "main")
     if main:
         out += ["## Final greedy metrics", "",
@@ -379,10 +379,11 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
         out.append("Not computed: it needs two or more main lines with final scores on a "
                    "common task.")
     else:
-        out += [f"Over {len(agg['tasks'])} task(s) ({', '.join(agg['tasks'])}) where every line "
-                f"has final scores; win rates as they are, returns min-max normalised per task; "
-                f"stratified bootstrap over seeds within tasks, {agg['reps']} replications, "
-                f"95% percentile intervals (rliable's IQM and probability of improvement).", "",
+        out += [(f"Over {len(agg['tasks'])} task(s) ({', '.join(agg['tasks'])}) where every "
+                 f"line has final scores; win rates as they are, returns min-max normalised per "
+                 f"task; stratified bootstrap over seeds within tasks, {agg['reps']} "
+                 f"replications, 95% percentile intervals (rliable's IQM and probability of "
+                 f"improvement)."), "",
                 "| line | runs | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|"]
         for label, line in agg["lines"].items():
             out.append(f"| {label} | {line['runs']} | {line['iqm']:.3f} "

@@ -113,7 +113,8 @@ def run_experiment(
     with experiment_lock(out):
         inspect_all(plan)  # again: another experiment may have held the directory until now
         print_plan(plan)
-        shutil.copyfile(spec.path, out / "spec.yaml")
+        if spec.path.resolve() != (out / "spec.yaml").resolve():
+            shutil.copyfile(spec.path, out / "spec.yaml")
         for run in plan.runs:
             if run.status == REDO:
                 discard(run, out)
