@@ -144,8 +144,15 @@ def train_command(args: argparse.Namespace) -> None:
         config = load_config(args.config, [*args.set, *explicit])
         trainer = build_trainer(config)
         run_dir = RunDir.create(args.out or default_out(config), config)
+    train_into(trainer, run_dir, resume=args.resume is not None)
+
+
+def train_into(
+    trainer: Trainer, run_dir: RunDir, resume: bool, start: TrainerState | None = None
+) -> None:
+    """`run_training`, telling the user how to continue if they interrupt it."""
     try:
-        run_training(trainer, run_dir, resume=args.resume is not None)
+        run_training(trainer, run_dir, resume=resume, start=start)
     except KeyboardInterrupt:
         print(f"cmat: stopped at the last checkpoint; continue with: "
               f"cmat train --resume {run_dir.path}", file=sys.stderr)
@@ -216,13 +223,7 @@ def finetune_command(args: argparse.Namespace) -> None:
     run_dir = RunDir.create(out, config)
     print(f"fine-tuning ({args.mode}) from {source_dir.path} at {source_steps} env steps",
           file=sys.stderr)
-    try:
-        run_training(trainer, run_dir, resume=False, start=state)
-    except KeyboardInterrupt:
-        print(f"cmat: stopped at the last checkpoint; continue with: "
-              f"cmat train --resume {run_dir.path}", file=sys.stderr)
-        raise
-    print(f"run directory: {run_dir.path}")
+    train_into(trainer, run_dir, resume=False, start=state)
 
 
 def experiment_command(args: argparse.Namespace) -> None:
