@@ -11,7 +11,10 @@ training steps/s (collect, target values, GAE, PPO epochs), and the update's ach
 beside a large matmul's FLOP/s measured in the same process. The update's FLOPs are XLA's cost
 analysis of one compiled gradient step (no scan inside it: the decoder's m iterations are
 unrolled, so every iteration is counted) times epochs × minibatches. Everything is timed after
-compilation, fastest of `--repeats` runs.
+compilation, fastest of `--repeats` runs. Env-only and collection runs alternate, so a change in
+the shared machine's load hits both; besides the ratio of the fastest runs, the table gives the
+median and range of the ratios of the `--repeats` alternating pairs. `XLA_FLAGS` from the
+environment applies to every program and is printed in the header.
 
 Algorithm comparison (one process per algorithm, each with its defaults from cmat.config):
 training steps/s counting all seeds' environment steps, timed on the second chunk. The `mava`
@@ -23,12 +26,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from cmat.config import ALGORITHMS
 
@@ -82,12 +88,16 @@ def breakdown(env_id: str, num_envs: int, repeats: int) -> dict[str, float]:
     state = jax.jit(lambda key: trainer_lib.init_state(setup, key))(jax.random.PRNGKey(0))
 
     env_only = jax.jit(random_rollout(setup.env, num_envs, config.rollout_length))
-    jax.block_until_ready(env_only(jax.random.PRNGKey(1)))
-    env_only_s = fastest(lambda: env_only(jax.random.PRNGKey(1)), repeats)
-
     collect = jax.jit(lambda s: trainer_lib.collect_rollout(setup, s))
+    state, _ = collect(state)
+    jax.block_until_ready(env_only(jax.random.PRNGKey(1)))
+    env_only_times, collect_times = [], []
+    for _ in range(repeats):
+        env_only_times.append(fastest(lambda: env_only(jax.random.PRNGKey(1)), 1))
+        collect_times.append(fastest(lambda: collect(state), 1))
+    env_only_s, collect_s = min(env_only_times), min(collect_times)
+    pair_ratios = np.array(env_only_times) / np.array(collect_times)
     state, rollout = collect(state)
-    collect_s = fastest(lambda: collect(state), repeats)
 
     _, batch = jax.jit(lambda s, r: trainer_lib.make_batch(setup, s, r))(state, rollout)
     optimise = jax.jit(lambda p, o, b, k: trainer_lib.optimise(setup, p, o, b, k))
@@ -112,6 +122,8 @@ def breakdown(env_id: str, num_envs: int, repeats: int) -> dict[str, float]:
         "update_gflops": update_flops / update_s / 1e9,
         "matmul_gflops": matmul / 1e9,
         "collect_ratio": env_only_s / collect_s,
+        "collect_ratio_median": float(np.median(pair_ratios)),
+        "collect_ratio_range": (float(pair_ratios.min()), float(pair_ratios.max())),
         "update_flops_ratio": update_flops / update_s / matmul,
     }
 
@@ -152,7 +164,7 @@ def compare_algorithms(args: argparse.Namespace) -> None:
             overrides = [*PRESETS[preset], *args.set]
             command = [sys.executable, __file__, "--single", "--env", args.env, "--algo", algo,
                        "--updates", str(args.updates), "--set", *overrides]
-            done = subprocess.run(command, capture_output=True, text=True)
+            done = subprocess.run(command, check=False, capture_output=True, text=True)
             if done.returncode != 0:
                 reason = (done.stderr.strip().splitlines() or ["failed"])[-1]
                 print(f"{algo:<12} {preset:<10} failed: {reason}")
@@ -184,20 +196,26 @@ def main() -> None:
         compare_algorithms(args)
         return
     print(f"CMAT default config (32 -> {args.envs} envs x 100 steps, 15 epochs, 1 minibatch, "
-          f"d=64, 1 block, m=n); fastest of {args.repeats}")
+          f"d=64, 1 block, m=n); fastest of {args.repeats}; "
+          f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
     print(f"{'env':<20} {'env-only sps':>12} {'collect sps':>12} {'train sps':>10} "
-          f"{'collect/env':>11} {'update GFLOP/s':>15} {'matmul GFLOP/s':>15} {'ratio':>6}")
+          f"{'collect/env':>11} {'pairs: median [range]':>22} {'update GFLOP/s':>15} "
+          f"{'matmul GFLOP/s':>15} {'ratio':>6}")
     results = {}
     for env_id in args.scenarios:
         r = results[env_id] = breakdown(env_id, args.envs, args.repeats)
+        low, high = r["collect_ratio_range"]
         print(f"{env_id:<20} {r['env_only_sps']:>12,.0f} {r['collect_sps']:>12,.0f} "
-              f"{r['train_sps']:>10,.0f} {r['collect_ratio']:>11.2f} {r['update_gflops']:>15.1f} "
+              f"{r['train_sps']:>10,.0f} {r['collect_ratio']:>11.2f} "
+              f"{r['collect_ratio_median']:>8.2f} [{low:.2f}-{high:.2f}]{'':>6} "
+              f"{r['update_gflops']:>15.1f} "
               f"{r['matmul_gflops']:>15.1f} {r['update_flops_ratio']:>6.2f}", flush=True)
     for env_id, r in results.items():
         print(f"RESULT env={env_id} envs={args.envs} env_only_sps={r['env_only_sps']:.0f} "
               f"collect_sps={r['collect_sps']:.0f} train_sps={r['train_sps']:.0f} "
               f"collect_ratio={r['collect_ratio']:.3f} "
-              f"update_flops_ratio={r['update_flops_ratio']:.3f}")
+              f"update_flops_ratio={r['update_flops_ratio']:.3f} "
+              f"collect_ratio_median={r['collect_ratio_median']:.3f}")
 
 
 if __name__ == "__main__":

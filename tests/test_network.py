@@ -13,7 +13,8 @@ from cmat.algorithms.cmat import CMAT
 from cmat.algorithms.distributions import action_distribution
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.layers import DecoderBlock
+from cmat.networks.cmat import SharedInputDense
+from cmat.networks.layers import DecoderBlock, dense
 
 N_AGENTS, OBS_DIM, N_ACTIONS = 5, 7, 6
 
@@ -84,8 +85,22 @@ def test_decoder_cache_matches_full_causal_pass() -> None:
     np.testing.assert_allclose(cached, full, rtol=1e-5, atol=1e-5)
 
 
+def test_shared_input_dense_equals_a_dense_layer_on_the_concatenation() -> None:
+    tokens = jax.random.normal(jax.random.PRNGKey(3), (2, N_AGENTS, 6))
+    shared = jax.random.normal(jax.random.PRNGKey(4), (2, 4))
+    layer = SharedInputDense(8)
+    params = layer.init(jax.random.PRNGKey(0), tokens, shared)
+    params["params"]["bias"] = jax.random.normal(jax.random.PRNGKey(5), (8,))
+    concatenated = jnp.concatenate(
+        [tokens, jnp.broadcast_to(shared[:, None, :], (2, N_AGENTS, 4))], axis=-1
+    )
+    reference = dense(8).apply(params, concatenated)
+    np.testing.assert_allclose(layer.apply(params, tokens, shared), reference, rtol=1e-5, atol=1e-5)
+    assert layer.init(jax.random.PRNGKey(0), tokens, shared)["params"]["kernel"].shape == (10, 8)
+
+
 def test_iterations_and_consensus_source_change_the_output() -> None:
-    _, params_default, obs, mask = build(True)
+    _, _, obs, mask = build(True)
     outputs = {}
     for name, overrides in {
         "default": {},

@@ -25,7 +25,9 @@ import jax.numpy as jnp
 import flax.linen as nn
 
 from cmat.config import NetworkConfig, resolve_iterations
-from cmat.networks.layers import Compressor, DecoderBlock, ObservationEncoder, dense
+from cmat.networks.layers import (
+    HIDDEN_GAIN, Compressor, DecoderBlock, ObservationEncoder, dense,
+)
 
 
 class PolicyOutput(NamedTuple):
@@ -48,8 +50,39 @@ class PolicyOutput(NamedTuple):
     """[...] entropy of π_c(· | O); None for the deterministic consensus."""
 
 
+class SharedInputDense(nn.Module):
+    """Dense([x_i; s]) for every token x_i and one vector s shared by all of them.
+
+    W[x_i; s] + b = W_x x_i + (W_s s + b): the shared half is multiplied once per team instead
+    of once per agent. Parameters are those of `dense` on the concatenation, so the two forms
+    are interchangeable.
+    """
+
+    features: int
+
+    @nn.compact
+    def __call__(self, tokens: jax.Array, shared: jax.Array | None = None) -> jax.Array:
+        """tokens [..., n, a], shared [..., s] or None -> [..., n, features]."""
+        token_features = tokens.shape[-1]
+        shared_features = 0 if shared is None else shared.shape[-1]
+        kernel = self.param(
+            "kernel", nn.initializers.orthogonal(HIDDEN_GAIN),
+            (token_features + shared_features, self.features),
+        )
+        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        if shared is None:
+            return tokens @ kernel + bias
+        return tokens @ kernel[:token_features] + (shared @ kernel[token_features:] + bias)[
+            ..., None, :
+        ]
+
+
 class ActionHead(nn.Module):
-    """Actor-MLP([ô_i; c]) (paper eq. actor_MLP), shared across agents."""
+    """Actor-MLP([ô_i; c]) (paper eq. actor_MLP), shared across agents.
+
+    `shared` is the team-wide half of every agent's input (CMAT's consensus c); heads whose
+    input is per-agent only (MAT, Triple-BERT) pass None.
+    """
 
     n_embd: int
     action_dim: int
@@ -57,9 +90,12 @@ class ActionHead(nn.Module):
     init_gain: float
 
     @nn.compact
-    def __call__(self, features: jax.Array) -> tuple[jax.Array, jax.Array]:
-        hidden = nn.LayerNorm()(nn.gelu(dense(self.n_embd)(features)))
-        params = dense(self.action_dim, self.init_gain)(hidden)
+    def __call__(
+        self, features: jax.Array, shared: jax.Array | None = None
+    ) -> tuple[jax.Array, jax.Array]:
+        first = SharedInputDense(self.n_embd, name="Dense_0")(features, shared)
+        hidden = nn.LayerNorm()(nn.gelu(first))
+        params = dense(self.action_dim, self.init_gain, name="Dense_1")(hidden)
         log_std = self.param(
             "log_std", nn.initializers.zeros, (0 if self.discrete else self.action_dim,)
         )
@@ -203,8 +239,7 @@ class CMATNetwork(nn.Module):
                 )
             conditioning = self.latent_consensus.conditioning(consensus, latent)
             latent_log_prob, latent_entropy = distribution.log_prob(latent), distribution.entropy()
-        shared = jnp.broadcast_to(conditioning[..., None, :], encoded.shape)
-        action_params, log_std = self.actor_mlp(jnp.concatenate([encoded, shared], axis=-1))
+        action_params, log_std = self.actor_mlp(encoded, conditioning)
         if self.discrete:
             action_params = jnp.where(action_mask, action_params, MASKED_LOGIT)
         return PolicyOutput(
