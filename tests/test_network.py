@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,7 +15,7 @@ from cmat.algorithms.distributions import action_distribution
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.cmat import SharedInputDense
-from cmat.networks.layers import DecoderBlock, dense
+from cmat.networks.layers import DecoderBlock, MultiHeadAttention, dense
 
 N_AGENTS, OBS_DIM, N_ACTIONS = 5, 7, 6
 
@@ -65,6 +66,27 @@ def test_masked_actions_have_zero_probability_and_are_never_sampled() -> None:
     probs = jax.nn.softmax(output.action_params, axis=-1)
     assert float(jnp.max(jnp.where(mask, 0.0, probs))) == 0.0
     assert np.isfinite(float(jnp.sum(action_distribution(output.action_params, output.log_std, True).entropy())))
+
+
+@pytest.mark.parametrize("causal", [False, True])
+def test_attention_matches_flax_reference_attention(causal: bool) -> None:
+    attention = MultiHeadAttention(n_embd=16, n_head=4)
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, 5, 16))
+    memory = jax.random.normal(jax.random.PRNGKey(1), (2, 5, 16))
+    params = attention.init(jax.random.PRNGKey(2), x, memory)["params"]
+    params = jax.tree.map(lambda p: p + 0.1 * jax.random.normal(jax.random.PRNGKey(3), p.shape), params)
+
+    def project(name: str, inputs: jax.Array) -> jax.Array:
+        layer = params[name]
+        return (inputs @ layer["kernel"] + layer["bias"]).reshape(2, 5, 4, 4)
+
+    mask = nn.make_causal_mask(jnp.ones((2, 5))) if causal else None
+    heads = nn.dot_product_attention(
+        project("query", x), project("key", memory), project("value", memory), mask=mask
+    )
+    reference = heads.reshape(2, 5, 16) @ params["out"]["kernel"] + params["out"]["bias"]
+    output = attention.apply({"params": params}, x, memory, causal=causal)
+    np.testing.assert_allclose(output, reference, rtol=1e-5, atol=1e-5)
 
 
 def test_decoder_cache_matches_full_causal_pass() -> None:

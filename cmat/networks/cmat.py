@@ -26,7 +26,7 @@ import flax.linen as nn
 
 from cmat.config import NetworkConfig, resolve_iterations
 from cmat.networks.layers import (
-    HIDDEN_GAIN, Compressor, DecoderBlock, ObservationEncoder, dense,
+    HIDDEN_GAIN, Compressor, DecoderBlock, KeyValues, ObservationEncoder, dense,
 )
 
 
@@ -171,7 +171,7 @@ class ConsensusDecoder(nn.Module):
             "positions", nn.initializers.normal(0.02), (self.iterations, self.n_embd)
         )
         memories = [block.encode_memory(encoded) for block in blocks]
-        caches: list[tuple[jax.Array, jax.Array] | None] = [None] * self.n_block
+        caches: list[KeyValues | None] = [None] * self.n_block
         sequence = [e0]
         for k in range(self.iterations):
             x = (sequence[-1] + positions[k])[..., None, :]

@@ -22,8 +22,28 @@ def dense(features: int, gain: float = HIDDEN_GAIN, name: str | None = None) -> 
     )
 
 
+KeyValues = tuple[jax.Array, jax.Array]
+"""Keys and values of attended positions, each [..., heads, L, d/heads] (head-major)."""
+
+
+def extend(cache: KeyValues | None, new: KeyValues) -> KeyValues:
+    """A key/value cache with the positions of `new` appended."""
+    if cache is None:
+        return new
+    return (
+        jnp.concatenate([cache[0], new[0]], axis=-2),
+        jnp.concatenate([cache[1], new[1]], axis=-2),
+    )
+
+
 class MultiHeadAttention(nn.Module):
-    """Scaled dot-product attention with separate query, key and value projections."""
+    """Scaled dot-product attention with separate query, key and value projections.
+
+    Heads are kept on the axis before positions, so both products are batched matmuls whose
+    batch axes lead and whose contraction axes are minor: with one head (the reference
+    setting) no transpose is left, which on CPU halves the attention's cost against a
+    positions-then-heads layout (benchmarks/throughput.py).
+    """
 
     n_embd: int
     n_head: int
@@ -35,10 +55,12 @@ class MultiHeadAttention(nn.Module):
         self.out = dense(self.n_embd, 1.0)
 
     def split_heads(self, x: jax.Array) -> jax.Array:
-        return x.reshape(*x.shape[:-1], self.n_head, self.n_embd // self.n_head)
+        """[..., L, d] -> [..., heads, L, d/heads]."""
+        heads = x.reshape(*x.shape[:-1], self.n_head, self.n_embd // self.n_head)
+        return jnp.moveaxis(heads, -2, -3)
 
-    def project_memory(self, memory: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Keys and values of `memory` [..., L, d], as [..., L, heads, d/heads]."""
+    def project_memory(self, memory: jax.Array) -> KeyValues:
+        """Keys and values of `memory` [..., L, d]."""
         return self.split_heads(self.key(memory)), self.split_heads(self.value(memory))
 
     def attend(
@@ -46,11 +68,13 @@ class MultiHeadAttention(nn.Module):
     ) -> jax.Array:
         """Query positions of `x` attend to the given keys: all of them, or with `causal`,
         position k to keys 0..k only."""
-        mask = None
+        queries = self.split_heads(self.query(x)) / np.sqrt(self.n_embd // self.n_head)
+        logits = jnp.einsum("...qd,...kd->...qk", queries, keys)
         if causal:
-            mask = jnp.tril(jnp.ones((x.shape[-2], keys.shape[-3]), dtype=bool))
-        heads = nn.dot_product_attention(self.split_heads(self.query(x)), keys, values, mask=mask)
-        return self.out(heads.reshape(*x.shape[:-1], self.n_embd))
+            mask = jnp.tril(jnp.ones((x.shape[-2], keys.shape[-2]), dtype=bool))
+            logits = jnp.where(mask, logits, jnp.finfo(logits.dtype).min)
+        heads = jnp.einsum("...qk,...kd->...qd", jax.nn.softmax(logits, axis=-1), values)
+        return self.out(jnp.moveaxis(heads, -3, -2).reshape(*x.shape[:-1], self.n_embd))
 
     def __call__(self, x: jax.Array, memory: jax.Array, causal: bool = False) -> jax.Array:
         return self.attend(x, *self.project_memory(memory), causal=causal)
@@ -106,8 +130,8 @@ class Compressor(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         scores = dense(self.heads, 1.0)(nn.gelu(dense(self.n_embd)(x)))
-        mixture = jax.nn.softmax(scores, axis=-2)
-        pooled = jnp.einsum("...nh,...nd->...hd", mixture, x)
+        mixture = jax.nn.softmax(jnp.swapaxes(scores, -1, -2), axis=-1)
+        pooled = mixture @ x
         flat = pooled.reshape(*pooled.shape[:-2], self.heads * x.shape[-1])
         return dense(self.out_features, 1.0)(nn.gelu(dense(self.n_embd)(flat)))
 
@@ -131,20 +155,17 @@ class DecoderBlock(nn.Module):
     def step(
         self,
         token: jax.Array,
-        cache: tuple[jax.Array, jax.Array] | None,
-        encoded: tuple[jax.Array, jax.Array],
-    ) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
-        """token [..., 1, d]; cache: keys/values [..., k, heads, d/heads] of earlier tokens."""
-        keys, values = self.self_attention.project_memory(token)
-        if cache is not None:
-            keys = jnp.concatenate([cache[0], keys], axis=-3)
-            values = jnp.concatenate([cache[1], values], axis=-3)
+        cache: KeyValues | None,
+        encoded: KeyValues,
+    ) -> tuple[jax.Array, KeyValues]:
+        """token [..., 1, d]; cache: keys/values of the earlier tokens."""
+        keys, values = extend(cache, self.self_attention.project_memory(token))
         x = self.norms[0](token + self.self_attention.attend(token, keys, values))
         x = self.norms[1](x + self.cross_attention.attend(x, *encoded))
         x = self.norms[2](x + self.feed_forward(x))
         return x, (keys, values)
 
-    def encode_memory(self, memory: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def encode_memory(self, memory: jax.Array) -> KeyValues:
         """Cross-attention keys/values of the encoder output, computed once for all steps."""
         return self.cross_attention.project_memory(memory)
 

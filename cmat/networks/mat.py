@@ -25,9 +25,9 @@ import flax.linen as nn
 from cmat.algorithms.distributions import action_distribution, greedy_action
 from cmat.config import NetworkConfig
 from cmat.networks.cmat import MASKED_LOGIT, ActionHead
-from cmat.networks.layers import FeedForward, MultiHeadAttention, ObservationEncoder, dense
-
-KeyValues = tuple[jax.Array, jax.Array]
+from cmat.networks.layers import (
+    FeedForward, KeyValues, MultiHeadAttention, ObservationEncoder, dense, extend,
+)
 
 
 class BlockCache(NamedTuple):
@@ -48,15 +48,6 @@ class MATOutput(NamedTuple):
     """[n] per-agent values V(ô_i); the team value V(O) is their mean."""
     encoded: jax.Array
     """[n, d] the encoder output Ô."""
-
-
-def extend(cache: KeyValues | None, new: KeyValues) -> KeyValues:
-    if cache is None:
-        return new
-    return (
-        jnp.concatenate([cache[0], new[0]], axis=-3),
-        jnp.concatenate([cache[1], new[1]], axis=-3),
-    )
 
 
 class MATDecodeBlock(nn.Module):
