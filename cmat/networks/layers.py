@@ -120,7 +120,8 @@ class Compressor(nn.Module):
     """Soft-mixture pooling of a set (paper eq. critic_compressor).
 
     M = softmax over the N inputs of MLP(x) in R^{N x h}; z = Mᵀx in R^{h x d};
-    y = MLP(flatten z). Permutation invariant over the N inputs.
+    y = MLP(flatten z). Permutation invariant over the N inputs. Mᵀ is formed directly
+    (softmax along its rows), so z = Mᵀx is a plain batched matmul with no transposed operand.
     """
 
     n_embd: int
@@ -130,8 +131,8 @@ class Compressor(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         scores = dense(self.heads, 1.0)(nn.gelu(dense(self.n_embd)(x)))
-        mixture = jax.nn.softmax(jnp.swapaxes(scores, -1, -2), axis=-1)
-        pooled = mixture @ x
+        mixture_transposed = jax.nn.softmax(jnp.swapaxes(scores, -1, -2), axis=-1)
+        pooled = mixture_transposed @ x
         flat = pooled.reshape(*pooled.shape[:-2], self.heads * x.shape[-1])
         return dense(self.out_features, 1.0)(nn.gelu(dense(self.n_embd)(flat)))
 
