@@ -41,8 +41,8 @@ class MultiHeadAttention(nn.Module):
 
     Heads are kept on the axis before positions, so both products are batched matmuls whose
     batch axes lead and whose contraction axes are minor: with one head (the reference
-    setting) no transpose is left, which on CPU halves the attention's cost against a
-    positions-then-heads layout (benchmarks/throughput.py).
+    setting) no transpose is left. On CPU this halved the time of SMAX 3m's per-team
+    attention (64 envs x 3 agents) against a positions-then-heads layout (README, Speed).
     """
 
     n_embd: int
