@@ -168,10 +168,13 @@ def eval_command(args: argparse.Namespace) -> None:
     if args.iterations is not None and config.algo != "cmat":
         raise CmatError(f"--iterations applies to cmat runs only; {run_dir.path} is a "
                         f"{config.algo!r} run")
-    data, _ = run_dir.load_checkpoint()
+    data, env_steps = run_dir.load_checkpoint()
     trainer = build_trainer(config)
     state = trainer.from_bytes(data)
-    extra = {}
+    extra: dict[str, object] = {
+        "env_steps": env_steps, "budget_steps": config.budget_steps,
+        "complete": env_steps == config.budget_steps,
+    }
     if config.algo == "cmat":
         trained = resolve_iterations(config.network.consensus_iterations,
                                      trainer.env_spec.num_agents)

@@ -8,7 +8,7 @@ is converted back to these frozen dataclasses, so a typo or a wrong type fails b
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,19 +24,6 @@ ITERATION_RULES = {"n": (1, 1), "n/2": (1, 2), "2n": (2, 1)}
 """m given relative to the number of agents n: name -> (numerator, denominator), m = ⌊n·a/b⌋."""
 FINETUNE_MODES = ("consensus", "action")
 ALGORITHMS = ("cmat", "mat", "pmat", "triple_bert", "happo", "mappo")
-
-ALGORITHM_DEFAULTS: dict[str, dict[str, Any]] = {
-    "cmat": {},
-    "mat": {},
-    "pmat": {},
-    "triple_bert": {},
-    "mappo": {"ppo": {"clip_eps": 0.2, "epochs": 5}},
-    "happo": {"ppo": {"clip_eps": 0.2, "epochs": 5}, "network": {"n_embd": 128}},
-}
-"""Each algorithm's reference settings for SMAC where they differ from MAT's (MAPPO: Yu et al.
-2022 SMAC configs; HAPPO: HARL's SMAC configs). They sit between the dataclass defaults and a
-YAML file, so `--config` and `--set` still override them."""
-
 
 @dataclass(frozen=True)
 class NetworkConfig:
@@ -72,7 +59,13 @@ class NetworkConfig:
     matrix:penalty (benchmarks/matrix_optimum.py) gain 0.01 left all 10 seeds on the safe
     (1, 1)."""
     init_gain: float = 0.01
-    """Orthogonal-init gain of the action and value output layers."""
+    """Orthogonal-init gain of the reference MAT's small layers (`init_(…)` without
+    `activate`, mat/algorithms/mat/algorithm/ma_transformer.py): the action and value output
+    layers, the query, key, value and output projections of every attention and the second
+    layer of every feed-forward block. Layers followed by an activation keep the ReLU gain √2."""
+    log_std_init: float = 1.0
+    """Initial learned log-std of continuous heads; std = sigmoid(log_std) · 0.5, so 1 starts
+    at std ≈ 0.37 (the reference MAT Decoder's `torch.ones(action_dim)`)."""
 
 
 @dataclass(frozen=True)
@@ -92,8 +85,20 @@ class PPOConfig:
     gae_lambda: float = 0.95
     target_tau: float = 0.1
     """Soft-update rate of the target critic phi- <- tau*phi + (1-tau)*phi- after each update
-    (Algorithm 1). The paper gives no value; tau=1 is standard PPO. 1, 0.1 and 0.01 measured
-    alike on matrix:fig1 and SMAX 3m (benchmarks/target_tau.py, README)."""
+    (Algorithm 1). The paper gives no value; tau=1 is standard PPO (GAE and value targets from
+    the critic that collected the data), the default of MAT, PMAT, MAPPO and HAPPO. 1, 0.1 and
+    0.01 measured alike for CMAT on matrix:fig1 and SMAX 3m (benchmarks/target_tau.py)."""
+    active_masks: bool = False
+    """Leave inactive agents (`TimeStep.alive` False: dead, absent) out of the per-agent means
+    of the policy loss, entropy and per-agent value loss, and out of advantage normalisation,
+    as the reference MAT, MAPPO and HAPPO do (`use_policy_active_masks`,
+    `use_value_active_masks`). CMAT and Triple-BERT's joint ratio has no per-agent mean; with
+    this option their entropy is averaged over active agents only."""
+    per_agent_gae: bool = False
+    """MAT and PMAT only: GAE per agent on each agent's own V(ô_i), each V(ô_i) regressed on
+    its own return (the reference MAT with value normalisation, mat/runner/shared/
+    base_runner.py + utils/shared_buffer.py). False: one GAE on the team value
+    V(O) = mean_i V(ô_i)."""
     value_norm: bool = True
     """Running mean/std normalisation of value targets (MAT's ValueNorm)."""
     huber_loss: bool = True
@@ -149,7 +154,15 @@ class TrainConfig:
 
     @property
     def num_updates(self) -> int:
+        """The run's budget in whole updates: `total_steps` rounded up to a multiple of
+        `steps_per_update`. The one rounding rule: training, resume, `cmat eval` and the
+        experiment runner all count a run as complete at exactly `budget_steps`."""
         return max(1, math.ceil(self.total_steps / self.steps_per_update))
+
+    @property
+    def budget_steps(self) -> int:
+        """Env steps per seed a complete run has trained: `num_updates` whole updates."""
+        return self.num_updates * self.steps_per_update
 
     @property
     def updates_per_log(self) -> int:
@@ -201,15 +214,55 @@ def validate(config: TrainConfig) -> TrainConfig:
         (config.steps_per_update % ppo.num_minibatches == 0,
          f"num_envs * rollout_length ({config.steps_per_update}) must be divisible by "
          f"ppo.num_minibatches ({ppo.num_minibatches})"),
-        (0.0 < ppo.target_tau <= 1.0, f"ppo.target_tau must be in (0, 1], got {ppo.target_tau}"),
-        (ppo.lr > 0, f"ppo.lr must be > 0, got {ppo.lr}"),
-        (0.0 <= ppo.gamma <= 1.0, f"ppo.gamma must be in [0, 1], got {ppo.gamma}"),
-        (0.0 <= ppo.gae_lambda <= 1.0, f"ppo.gae_lambda must be in [0, 1], got {ppo.gae_lambda}"),
+        (not ppo.per_agent_gae or config.algo in ("mat", "pmat"),
+         f"ppo.per_agent_gae needs per-agent values (mat, pmat); algo {config.algo!r} has a "
+         f"team value"),
     ]
     for ok, message in checks:
         if not ok:
             raise CmatError(f"invalid config: {message}")
+    for name, value in numeric_fields(config):
+        if isinstance(value, float) and not math.isfinite(value):
+            raise CmatError(f"invalid config: {name} must be a finite number, got {value}")
+        low, high, closed_low = NUMERIC_RANGES.get(name, (None, None, True))
+        too_low = low is not None and (value < low if closed_low else value <= low)
+        if too_low or (high is not None and value > high):
+            lower = "" if low is None else ("[" if closed_low else "(") + f"{low}, "
+            upper = "inf)" if high is None else f"{high}]"
+            raise CmatError(f"invalid config: {name} must be in {lower}{upper}, got {value}")
     return config
+
+
+NUMERIC_RANGES: dict[str, tuple[float | None, float | None, bool]] = {
+    "ppo.lr": (0.0, None, False),
+    "ppo.adam_eps": (0.0, None, False),
+    "ppo.clip_eps": (0.0, 1.0, False),
+    "ppo.ent_coef": (0.0, None, True),
+    "ppo.value_coef": (0.0, None, True),
+    "ppo.max_grad_norm": (0.0, None, False),
+    "ppo.gamma": (0.0, 1.0, True),
+    "ppo.gae_lambda": (0.0, 1.0, True),
+    "ppo.target_tau": (0.0, 1.0, False),
+    "ppo.huber_delta": (0.0, None, False),
+    "ppo.consensus_ent_coef": (0.0, None, True),
+    "ppo.order_loss_coef": (0.0, None, True),
+    "network.init_gain": (0.0, None, False),
+    "network.latent_head_gain": (0.0, None, False),
+}
+"""Allowed range of numeric fields not checked above: (low, high, low included); None is
+unbounded. Every float field must also be finite."""
+
+
+def numeric_fields(config: Any, prefix: str = "") -> list[tuple[str, float]]:
+    """Every int and float field of a config dataclass, nested ones included, by dotted name."""
+    found: list[tuple[str, float]] = []
+    for item in fields(config):
+        value = getattr(config, item.name)
+        if is_dataclass(value):
+            found += numeric_fields(value, f"{prefix}{item.name}.")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            found.append((f"{prefix}{item.name}", value))
+    return found
 
 
 def valid_iterations(m: int | str | None) -> bool:
@@ -236,8 +289,8 @@ def load_config(
     overrides: list[str] | tuple[str, ...] = (),
     base: TrainConfig | None = None,
 ) -> TrainConfig:
-    """Merge defaults (or `base`), the algorithm's defaults, a YAML file and `key=value`
-    overrides into a checked config."""
+    """Merge defaults (or `base`), the algorithm's reference defaults (its class's
+    `reference_defaults`), a YAML file and `key=value` overrides into a checked config."""
     schema = OmegaConf.structured(base if base is not None else TrainConfig)
     layers = [schema]
     try:
@@ -253,8 +306,10 @@ def load_config(
         if overrides:
             layers.append(OmegaConf.from_dotlist(list(overrides)))
         algo = OmegaConf.merge(*layers).algo
-        if base is None and algo in ALGORITHM_DEFAULTS:
-            layers.insert(1, OmegaConf.create(ALGORITHM_DEFAULTS[algo]))
+        if base is None and algo in ALGORITHMS:
+            from cmat.algorithms import reference_defaults
+
+            layers.insert(1, OmegaConf.create(reference_defaults(algo)))
         config = OmegaConf.to_object(OmegaConf.merge(*layers))
     except FileNotFoundError:
         raise CmatError(f"config file not found: {yaml_file}") from None

@@ -122,7 +122,8 @@ class RunDir:
         return data, env_steps
 
     def append_metrics(self, rows: list[Row]) -> None:
-        """Append rows (NaN and missing columns empty, other keys ignored) and sync them to disk."""
+        """Append rows (NaN as `nan`, missing columns empty, other keys ignored) and sync them to
+        disk."""
         buffer = io.StringIO()
         writer = csv.DictWriter(buffer, COLUMNS, extrasaction="ignore", lineterminator="\n")
         if not self.metrics_path.exists() or self.metrics_path.stat().st_size == 0:
@@ -169,8 +170,10 @@ class RunDir:
 
 
 def csv_value(value: str | int | float) -> str | int | float:
+    """A cell: NaN as `nan` (a value that is not a number, e.g. the win rate of an environment
+    without one), so it cannot be mistaken for a missing cell."""
     if isinstance(value, float) and math.isnan(value):
-        return ""
+        return "nan"
     return value
 
 

@@ -67,7 +67,7 @@ def test_train_writes_a_complete_run_directory(trained: Path) -> None:
         keys = sorted((int(r["seed"]), int(r["env_steps"])) for r in written if r["kind"] == kind)
         assert keys == sorted((seed, steps) for seed in SEEDS for steps in chunks)
     assert {r["kind"] for r in written} == {"train", "eval"}
-    assert all(r["win_rate"] == "" for r in written)
+    assert all(r["win_rate"] == "nan" for r in written)
     assert all(float(r["episode_return"]) >= 0 for r in written if r["kind"] == "eval")
     assert all(r["policy_loss"] and r["entropy"] for r in written if r["kind"] == "train")
 
@@ -110,12 +110,12 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
     calls: list[int] = []
 
     def interrupted_second_chunk(
-        self: Trainer, state: TrainerState
+        self: Trainer, state: TrainerState, updates: int | None = None
     ) -> tuple[TrainerState, dict[str, np.ndarray]]:
         calls.append(1)
         if len(calls) == 2:
             raise KeyboardInterrupt
-        return train_chunk(self, state)
+        return train_chunk(self, state, updates)
 
     monkeypatch.setattr(Trainer, "train_chunk", interrupted_second_chunk)
     assert main(["train", "--resume", str(run_copy), "--steps", "3000"]) == 130

@@ -102,7 +102,7 @@ def test_damaged_checkpoint_is_reported(tmp_path: Path, damage, reason: str) -> 
         run.load_checkpoint()
 
 
-def test_metrics_rows_append_with_nan_as_empty(tmp_path: Path) -> None:
+def test_metrics_rows_append_with_nan_as_nan(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path, TrainConfig())
     run.append_metrics([{"kind": "train", "seed": 0, "env_steps": 100, "episode_return": math.nan,
                          "win_rate": 0.5, "policy_loss": 0.25, "grad_norm": 3.0}])
@@ -112,8 +112,8 @@ def test_metrics_rows_append_with_nan_as_empty(tmp_path: Path) -> None:
     assert text.count("kind,") == 1
     rows = run.read_metrics()
     assert [(r["kind"], r["seed"]) for r in rows] == [("train", "0"), ("eval", "0"), ("eval", "1")]
-    assert rows[0]["episode_return"] == "" and rows[0]["policy_loss"] == "0.25"
-    assert rows[1]["win_rate"] == "" and rows[1]["value_loss"] == ""
+    assert rows[0]["episode_return"] == "nan" and rows[0]["policy_loss"] == "0.25"
+    assert rows[1]["win_rate"] == "nan" and rows[1]["value_loss"] == ""
 
 
 def test_truncate_drops_rows_past_the_checkpoint_and_keeps_earlier_bytes(tmp_path: Path) -> None:

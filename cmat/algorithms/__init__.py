@@ -5,7 +5,9 @@ from __future__ import annotations
 import importlib
 
 from cmat.algorithms.base import Algorithm
-from cmat.config import ALGORITHMS, NetworkConfig
+from typing import Any
+
+from cmat.config import ALGORITHMS, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 
@@ -20,8 +22,8 @@ MODULES = {
 """Where each algorithm of `cmat.config.ALGORITHMS` lives (imported on first use)."""
 
 
-def build_algorithm(name: str, config: NetworkConfig, spec: EnvSpec) -> Algorithm:
-    """The named algorithm's `build(config, spec)`."""
+def algorithm_class(name: str) -> Any:
+    """The class that implements the named algorithm (its module imported on first use)."""
     if name not in ALGORITHMS:
         raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(ALGORITHMS)}")
     module_name, _, class_name = MODULES[name].partition(":")
@@ -29,4 +31,16 @@ def build_algorithm(name: str, config: NetworkConfig, spec: EnvSpec) -> Algorith
         module = importlib.import_module(module_name)
     except ModuleNotFoundError:
         raise CmatError(f"algorithm {name!r} is not available in this version of cmat") from None
-    return getattr(module, class_name).build(config, spec)
+    return getattr(module, class_name)
+
+
+def reference_defaults(name: str) -> dict[str, Any]:
+    """The named algorithm's reference settings (its class's `reference_defaults`)."""
+    return algorithm_class(name).reference_defaults
+
+
+def build_algorithm(
+    name: str, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+) -> Algorithm:
+    """The named algorithm's `build(config, spec, ppo)`."""
+    return algorithm_class(name).build(config, spec, ppo or PPOConfig())

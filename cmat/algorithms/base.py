@@ -6,11 +6,12 @@ checkpoints are shared; an algorithm module holds only its network and its loss.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Protocol
+from typing import Any, ClassVar, NamedTuple, Protocol
 
 import jax
 
-from cmat.config import PPOConfig
+from cmat.config import NetworkConfig, PPOConfig
+from cmat.envs.protocol import EnvSpec
 
 Params = Any
 
@@ -27,13 +28,25 @@ class Batch(NamedTuple):
     log_probs: jax.Array
     """[B, n] per-agent log-probabilities under the collecting parameters"""
     values: jax.Array
-    """[B] values of the collecting parameters (normalised space), for the clipped value loss"""
+    """[B] team values (or [B, n] per-agent values) of the collecting parameters (normalised
+    space), for the clipped value loss"""
     advantages: jax.Array
-    """[B] team advantages"""
+    """[B] team advantages, or [B, n] per-agent ones (per-agent GAE)"""
     targets: jax.Array
-    """[B] value targets (normalised space)"""
+    """[B] or [B, n] value targets (normalised space), shaped as `values`"""
     extras: Any = ()
     """[B, ...] whatever the algorithm's `act` stored with each step (e.g. a sampled agent order)"""
+    alive: Any = None
+    """[B, n] bool: agents active in the observation (the env's `alive`); None: all of them"""
+    global_state: Any = None
+    """[B, state_dim] the environment's global state (state_dim 0 where it has none); None:
+    none given (a critic that needs one raises)"""
+
+
+def active_mask(batch: Batch, ppo: PPOConfig) -> jax.Array | None:
+    """The [B, n] mask the loss means run over: the batch's `alive` with `ppo.active_masks`,
+    else None (every agent)."""
+    return batch.alive if ppo.active_masks and batch.alive is not None else None
 
 
 class ActResult(NamedTuple):
@@ -41,23 +54,38 @@ class ActResult(NamedTuple):
     log_probs: jax.Array
     """[n] per-agent log-probabilities of the sampled actions"""
     value: jax.Array
-    """[] team value (normalised space)"""
+    """[] team value, or [n] per-agent values with per-agent GAE (normalised space)"""
     extras: Any = ()
     """any pytree the loss needs back from acting time; stored with the transition"""
 
 
 class Algorithm(Protocol):
-    """Per-team functions (no batch axis except in `loss`); the trainer vmaps them."""
+    """Per-team functions (no batch axis except in `loss`); the trainer vmaps them.
+
+    `global_state` [state_dim] is the environment's global state (`TimeStep.global_state`,
+    empty where it has none); only centralised critics read it.
+    """
+
+    reference_defaults: ClassVar[dict[str, Any]]
+    """Config values of the algorithm's reference implementation where they differ from the
+    dataclass defaults (the reference MAT's SMAC settings); `cmat.config.load_config` puts them
+    between those defaults and a YAML file."""
+
+    @classmethod
+    def build(cls, network: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = ...) -> Any: ...
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params: ...
 
     def act(
-        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
+        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
+        global_state: jax.Array | None = None,
     ) -> ActResult: ...
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array: ...
 
-    def value(self, params: Params, obs: jax.Array) -> jax.Array: ...
+    def value(
+        self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
+    ) -> jax.Array: ...
 
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig

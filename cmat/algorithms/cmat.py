@@ -14,15 +14,15 @@ own coefficient, `ppo.consensus_ent_coef`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import distrax
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params
+from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.distributions import action_distribution, greedy_action
-from cmat.algorithms.ppo import clipped_surrogate_loss, joint_log_ratio, value_loss
+from cmat.algorithms.ppo import clipped_surrogate_loss, joint_log_ratio, masked_mean, value_loss
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.cmat import CMATNetwork, PolicyOutput
@@ -41,16 +41,22 @@ class LatentSample(NamedTuple):
 class CMAT:
     network: CMATNetwork
 
+    reference_defaults: ClassVar[dict[str, Any]] = {}
+    """The paper trains CMAT with the reference MAT's settings (the dataclass defaults) and its
+    soft-updated target critic (`ppo.target_tau` 0.1)."""
+
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec) -> "CMAT":
+    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "CMAT":
         return cls(CMATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         return self.network.init(key, obs, action_mask)
 
     def act(
-        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
+        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
+        global_state: jax.Array | None = None,
     ) -> ActResult:
+        """Sample the team's actions (the global state is not used: V(O) reads observations)."""
         latent = {}
         if self.stochastic:
             latent_key, key = jax.random.split(key)
@@ -74,7 +80,10 @@ class CMAT:
         output = self.network.apply(params, obs, action_mask)
         return greedy_action(output.action_params, self.network.discrete)
 
-    def value(self, params: Params, obs: jax.Array) -> jax.Array:
+    def value(
+        self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
+    ) -> jax.Array:
+        """V(O) from the observations (paper eq. critic); the global state is not used."""
         return self.network.apply(params, obs, method="value")
 
     def log_ratio(
@@ -97,13 +106,14 @@ class CMAT:
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
-        """Clipped surrogate on the joint ratio, mean per-agent entropy, team value loss; with a
-        stochastic consensus, π_c's entropy gets its own bonus."""
+        """Clipped surrogate on the joint ratio, mean per-agent entropy (over active agents with
+        `ppo.active_masks`), team value loss; with a stochastic consensus, π_c's entropy gets its
+        own bonus."""
         log_ratio, output, distribution = self.log_ratio(params, batch)
         policy_loss, diagnostics = clipped_surrogate_loss(
             log_ratio, batch.advantages, ppo.clip_eps
         )
-        entropy = jnp.mean(distribution.entropy())
+        entropy = masked_mean(distribution.entropy(), active_mask(batch, ppo))
         critic_loss = value_loss(
             output.value, batch.values, batch.targets, ppo.clip_eps,
             ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,

@@ -17,17 +17,17 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import distrax
 import jax
 import jax.numpy as jnp
 import optax
 
-from cmat.algorithms.base import Batch, Params
+from cmat.algorithms.base import Batch, Params, active_mask
 from cmat.algorithms.distributions import action_distribution
 from cmat.algorithms.mappo import MAPPO
-from cmat.algorithms.ppo import clipped_surrogate_loss
+from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean
 from cmat.config import PPOConfig
 from cmat.runners import trainer
 
@@ -98,6 +98,13 @@ class HAPPO(MAPPO):
     `loss` (MAPPO's) is the simultaneous objective, every M = 1; the trainer calls `optimise`.
     """
 
+    reference_defaults: ClassVar[dict[str, Any]] = {
+        "ppo": {"clip_eps": 0.2, "epochs": 5, "target_tau": 1.0, "active_masks": True},
+        "network": {"n_embd": 128},
+    }
+    """HARL's SMAC configs (harl/configs/algos_cfgs/happo.yaml): clip 0.2, 5 epochs, hidden
+    128, GAE and targets from the collecting critic, policy active masks."""
+
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         """Each actor initialised on its own (a vmapped orthogonal init hangs XLA:CPU)."""
         keys = jax.random.split(key, self.num_agents + 1)
@@ -106,7 +113,7 @@ class HAPPO(MAPPO):
         ]
         return {
             "actor": jax.tree.map(lambda *leaves: jnp.stack(leaves), *actors),
-            "critic": self.critic.init(keys[-1], obs),
+            "critic": self.critic.init(keys[-1], self.critic_input(obs, self.blank_state)),
         }
 
     def policy(
@@ -129,13 +136,15 @@ class HAPPO(MAPPO):
     def agent_loss(
         self, agent: jax.Array, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
-        """One agent's clipped surrogate and entropy; `batch.advantages` already hold M·A."""
+        """One agent's clipped surrogate and entropy; `batch.advantages` already hold M·A. With
+        `ppo.active_masks` both average over the samples where the agent is active."""
         distribution = self.agent_distribution(params, agent, batch)
+        mask = None if active_mask(batch, ppo) is None else batch.alive[:, agent]
         log_ratio = distribution.log_prob(batch.actions[:, agent]) - batch.log_probs[:, agent]
         policy_loss, diagnostics = clipped_surrogate_loss(
-            log_ratio, batch.advantages, ppo.clip_eps
+            log_ratio, batch.advantages, ppo.clip_eps, mask
         )
-        entropy = jnp.mean(distribution.entropy())
+        entropy = masked_mean(distribution.entropy(), mask)
         total = policy_loss - ppo.ent_coef * entropy
         return total, {"policy_loss": policy_loss, "entropy": entropy, **diagnostics}
 

@@ -1,24 +1,27 @@
 """MAPPO (Yu et al. 2022): one actor shared by all agents, a centralized critic, per-agent PPO.
 
 Agent i acts from [o_i; one-hot(i)] alone (decentralised execution; the id lets the shared actor
-tell agents apart). The critic sees the global state, which this protocol does not provide
-separately: it is all agents' observations concatenated, so MAPPO trains on the same information
-as CMAT. Each agent's ratio r_i = π_i / π_i,old is clipped on its own against the team advantage
-and the surrogate is averaged over agents (unlike CMAT's joint ratio, paper eq. ratio).
-The feed-forward actor stands in for the reference's optional recurrent one.
+tell agents apart). The critic V(s) reads the environment's global state (`TimeStep.
+global_state`; on SMAX the world state JaxMARL's own MAPPO critic uses), or all agents'
+observations concatenated where the environment has none. Each agent's ratio r_i = π_i / π_i,old
+is clipped on its own against the team advantage and the surrogate is averaged over agents
+(unlike CMAT's joint ratio, paper eq. ratio); with `ppo.active_masks` (the reference default) the
+policy loss and entropy average over active agents only. The feed-forward actor stands in for
+the reference's optional recurrent one.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import distrax
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params
+from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.distributions import action_distribution, greedy_action
-from cmat.algorithms.ppo import clipped_surrogate_loss, value_loss
+from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean, value_loss
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.mlp import MLPActor, MLPCritic
@@ -30,11 +33,33 @@ class MAPPO:
     critic: MLPCritic
     num_agents: int
     discrete: bool
+    state_dim: int = 0
+    """The environment's global state size; 0: the critic reads the concatenated observations."""
+
+    reference_defaults: ClassVar[dict[str, Any]] = {
+        "ppo": {"clip_eps": 0.2, "epochs": 5, "target_tau": 1.0, "active_masks": True},
+    }
+    """Yu et al. 2022 (marlbenchmark/on-policy, SMAC scripts): clip 0.2, 5 epochs, GAE and
+    targets from the collecting critic, active masks."""
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec) -> "MAPPO":
-        actor = MLPActor(config.n_embd, spec.action_dim, spec.discrete, config.init_gain)
-        return cls(actor, MLPCritic(config.n_embd), spec.num_agents, spec.discrete)
+    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "MAPPO":
+        actor = MLPActor(
+            config.n_embd, spec.action_dim, spec.discrete, config.init_gain, config.log_std_init
+        )
+        return cls(actor, MLPCritic(config.n_embd), spec.num_agents, spec.discrete, spec.state_dim)
+
+    def critic_input(self, obs: jax.Array, global_state: jax.Array | None) -> jax.Array:
+        """The critic's input [..., s]: the global state, or obs [..., n, obs_dim] flattened
+        where the environment has none.
+
+        Raises ValueError if the environment has a global state and none is given."""
+        if self.state_dim == 0:
+            return obs.reshape(*obs.shape[:-2], obs.shape[-2] * obs.shape[-1])
+        if global_state is None or global_state.shape[-1] != self.state_dim:
+            found = None if global_state is None else global_state.shape
+            raise ValueError(f"the critic needs the global state [..., {self.state_dim}], got {found}")
+        return global_state
 
     def actor_inputs(self, obs: jax.Array) -> jax.Array:
         """[o_i; one-hot(i)] for every agent: [..., n, obs_dim + n]."""
@@ -45,8 +70,13 @@ class MAPPO:
         actor_key, critic_key = jax.random.split(key)
         return {
             "actor": self.actor.init(actor_key, self.actor_inputs(obs), action_mask),
-            "critic": self.critic.init(critic_key, obs),
+            "critic": self.critic.init(critic_key, self.critic_input(obs, self.blank_state)),
         }
+
+    @property
+    def blank_state(self) -> jax.Array:
+        """A zero global state, to shape the critic's parameters."""
+        return jnp.zeros(self.state_dim)
 
     def policy(
         self, params: Params, obs: jax.Array, action_mask: jax.Array
@@ -60,22 +90,27 @@ class MAPPO:
         return action_distribution(*self.policy(params, obs, action_mask), self.discrete)
 
     def act(
-        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
+        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
+        global_state: jax.Array | None = None,
     ) -> ActResult:
         distribution = self.distribution(params, obs, action_mask)
         actions, log_probs = distribution.sample_and_log_prob(seed=key)
-        return ActResult(actions, log_probs, self.value(params, obs))
+        return ActResult(actions, log_probs, self.value(params, obs, global_state))
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         return greedy_action(self.policy(params, obs, action_mask)[0], self.discrete)
 
-    def value(self, params: Params, obs: jax.Array) -> jax.Array:
-        return self.critic.apply(params["critic"], obs)
+    def value(
+        self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
+    ) -> jax.Array:
+        """V(s) of the team (`critic_input`)."""
+        return self.critic.apply(params["critic"], self.critic_input(obs, global_state))
 
     def critic_loss(self, params: Params, batch: Batch, ppo: PPOConfig) -> jax.Array:
+        """The team value loss (one value per sample: no agent to mask)."""
         return value_loss(
-            self.value(params, batch.obs), batch.values, batch.targets, ppo.clip_eps,
-            ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,
+            self.value(params, batch.obs, batch.global_state), batch.values, batch.targets,
+            ppo.clip_eps, ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,
         )
 
     def loss(
@@ -83,11 +118,12 @@ class MAPPO:
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
         """Per-agent clipped surrogate with the team advantage, mean entropy, value loss."""
         distribution = self.distribution(params, batch.obs, batch.action_mask)
+        mask = active_mask(batch, ppo)
         log_ratio = distribution.log_prob(batch.actions) - batch.log_probs
         policy_loss, diagnostics = clipped_surrogate_loss(
-            log_ratio, batch.advantages[:, None], ppo.clip_eps
+            log_ratio, batch.advantages[:, None], ppo.clip_eps, mask
         )
-        entropy = jnp.mean(distribution.entropy())
+        entropy = masked_mean(distribution.entropy(), mask)
         critic_loss = self.critic_loss(params, batch, ppo)
         total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
         return total, {

@@ -1,22 +1,29 @@
 """MAT (Wen et al. 2022): agents act one after another in a fixed order (paper eq. mat).
 
 Each agent's ratio r_i = π_i(a_i | O, a_<i) / π_i,old(a_i | O, a_<i) is clipped on its own with
-the same team advantage, and the clipped objectives are averaged over agents and samples. The
-team value V(O) = mean_i V(ô_i) feeds GAE; as in the reference implementation, each V(ô_i) is
-regressed on the team's value target with its own clipped value loss around its collecting-time
-value, which acting stores with the transition (`ActResult.extras`).
+its advantage, and the clipped objectives are averaged over agents and samples; with
+`ppo.active_masks` (the reference default) over the active agents only, as are the entropy and
+the value loss (mat/algorithms/mat/mat_trainer.py, `use_policy_active_masks`,
+`use_value_active_masks`).
+
+Values, as the reference with value normalisation (`ppo.per_agent_gae`, the default): GAE runs
+per agent on each agent's own V(ô_i) with the shared team reward, and each V(ô_i) is regressed
+on its own return (mat/utils/shared_buffer.py, `compute_returns`). Without it, one GAE runs on
+the team value V(O) = mean_i V(ô_i) and every V(ô_i) is regressed on the team target, around
+its own collecting-time value stored with the transition (`ActResult.extras`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params
+from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.distributions import action_distribution
-from cmat.algorithms.ppo import clipped_surrogate_loss, value_loss
+from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean, value_loss
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.mat import MATNetwork, MATOutput
@@ -25,10 +32,20 @@ from cmat.networks.mat import MATNetwork, MATOutput
 @dataclass(frozen=True)
 class MAT:
     network: MATNetwork
+    per_agent_gae: bool = False
+    """Values are per agent ([n], `ppo.per_agent_gae`), else their team mean ([])."""
+
+    reference_defaults: ClassVar[dict[str, Any]] = {
+        "ppo": {"target_tau": 1.0, "active_masks": True, "per_agent_gae": True},
+    }
+    """The reference MAT (PKU-MARL/Multi-Agent-Transformer, SMAC scripts): GAE and targets from
+    the collecting critic, active masks, per-agent GAE with value normalisation; the other
+    hyper-parameters are the dataclass defaults."""
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec) -> "MAT":
-        return cls(MATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))
+    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "MAT":
+        network = MATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete)
+        return cls(network, ppo.per_agent_gae)
 
     @property
     def identity(self) -> jax.Array:
@@ -60,17 +77,27 @@ class MAT:
         )
 
     def act(
-        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
+        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
+        global_state: jax.Array | None = None,
     ) -> ActResult:
+        """Actions along the identity order; the value is [n] per agent with per-agent GAE,
+        else the team mean, with the per-agent values in `extras` for the value loss."""
         encoded, agent_values = self.encode(params, obs)
         actions, log_probs = self.decode(params, encoded, action_mask, self.identity, key)
+        if self.per_agent_gae:
+            return ActResult(actions, log_probs, agent_values)
         return ActResult(actions, log_probs, jnp.mean(agent_values), agent_values)
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         encoded, _ = self.encode(params, obs)
         return self.decode(params, encoded, action_mask, self.identity, None)[0]
 
-    def value(self, params: Params, obs: jax.Array) -> jax.Array:
+    def value(
+        self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
+    ) -> jax.Array:
+        """[n] per-agent values V(ô_i) with per-agent GAE, else V(O) = their mean."""
+        if self.per_agent_gae:
+            return self.encode(params, obs)[1]
         return self.network.apply(params, obs, method=MATNetwork.value)
 
     def teacher_forced(self, params: Params, batch: Batch, orders: jax.Array) -> MATOutput:
@@ -88,20 +115,22 @@ class MAT:
         ppo: PPOConfig,
     ) -> tuple[jax.Array, dict[str, jax.Array], MATOutput]:
         """Eq. mat with the actions decoded along orders [B, n], and every agent's value
-        regressed on the team target around its collecting-time value [B, n]; also returns the
-        outputs."""
+        regressed on its target (per agent, or the team's) around its collecting-time value
+        [B, n]; means over active agents with `ppo.active_masks`. Also returns the outputs."""
         output = self.teacher_forced(params, batch, orders)
         distribution = action_distribution(
             output.action_params, output.log_std, self.network.discrete
         )
+        mask = active_mask(batch, ppo)
         log_ratio = distribution.log_prob(batch.actions) - batch.log_probs
-        advantages = jnp.broadcast_to(batch.advantages[:, None], log_ratio.shape)
-        policy_loss, diagnostics = clipped_surrogate_loss(log_ratio, advantages, ppo.clip_eps)
-        entropy = jnp.mean(distribution.entropy())
-        targets = jnp.broadcast_to(batch.targets[:, None], output.agent_values.shape)
+        advantages = per_agent(batch.advantages, log_ratio.shape)
+        policy_loss, diagnostics = clipped_surrogate_loss(
+            log_ratio, advantages, ppo.clip_eps, mask
+        )
+        entropy = masked_mean(distribution.entropy(), mask)
         critic_loss = value_loss(
-            output.agent_values, old_agent_values, targets, ppo.clip_eps,
-            ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,
+            output.agent_values, old_agent_values, per_agent(batch.targets, log_ratio.shape),
+            ppo.clip_eps, ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss, mask,
         )
         total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
         metrics = {
@@ -118,5 +147,17 @@ class MAT:
         """Per-agent clipped surrogates with the team advantage, mean entropy, per-agent value
         losses on the team target."""
         orders = jnp.broadcast_to(self.identity, batch.log_probs.shape)
-        total, metrics, _ = self.loss_along(params, batch, orders, batch.extras, ppo)
+        total, metrics, _ = self.loss_along(
+            params, batch, orders, self.collected_agent_values(batch, batch.extras), ppo
+        )
         return total, metrics
+
+    def collected_agent_values(self, batch: Batch, stored: Any) -> jax.Array:
+        """Every agent's collecting-time value [B, n]: the batch's values with per-agent GAE,
+        else the per-agent values acting stored with the transition."""
+        return batch.values if self.per_agent_gae else stored
+
+
+def per_agent(x: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """Team quantities [B] broadcast over agents to [B, n]; per-agent ones [B, n] as they are."""
+    return jnp.broadcast_to(x if x.ndim == len(shape) else x[:, None], shape)

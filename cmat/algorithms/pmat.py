@@ -3,21 +3,22 @@
 A scoring MLP on Ô gives one score s_i per agent; the order σ is drawn without replacement,
 P(σ) = Π_k exp(s_σ(k)) / Σ_{j≥k} exp(s_σ(j)), and MAT's decoder acts along it. The order is
 stored with the transition, so training scores the actions along the order they were sampled
-in; log P(σ) gets its own clipped PPO term with the team advantage, weighted by
-`ppo.order_loss_coef`, added to MAT's loss (eq. mat).
+in; log P(σ) gets its own clipped PPO term with the team advantage (with per-agent GAE: the
+mean advantage of the active agents), weighted by `ppo.order_loss_coef`, added to MAT's loss
+(eq. mat). Values, GAE and active masks are MAT's.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params
+from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.mat import MAT
-from cmat.algorithms.ppo import clipped_surrogate_loss
+from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.mat import OrderScorer
@@ -52,9 +53,12 @@ class PMAT:
     mat: MAT
     scorer: OrderScorer
 
+    reference_defaults: ClassVar[dict[str, Any]] = MAT.reference_defaults
+    """PMAT is built on the reference MAT code and trains as it does."""
+
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec) -> "PMAT":
-        return cls(MAT.build(config, spec), OrderScorer(config.n_embd, config.init_gain))
+    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "PMAT":
+        return cls(MAT.build(config, spec, ppo), OrderScorer(config.n_embd, config.init_gain))
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         mat_key, scorer_key = jax.random.split(key)
@@ -68,14 +72,16 @@ class PMAT:
         return encoded, agent_values, self.scorer.apply(params["scorer"], encoded)
 
     def act(
-        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array
+        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
+        global_state: jax.Array | None = None,
     ) -> ActResult:
         order_key, action_key = jax.random.split(key)
         encoded, agent_values, scores = self.scores(params, obs)
         order = sample_order(scores, order_key)
         actions, log_probs = self.mat.decode(params["mat"], encoded, action_mask, order, action_key)
         sampled = OrderSample(order, order_log_prob(scores, order), agent_values)
-        return ActResult(actions, log_probs, jnp.mean(agent_values), sampled)
+        value = agent_values if self.mat.per_agent_gae else jnp.mean(agent_values)
+        return ActResult(actions, log_probs, value, sampled)
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         """Agents in descending score order, each taking its most likely action."""
@@ -83,7 +89,9 @@ class PMAT:
         order = jnp.argsort(-scores)
         return self.mat.decode(params["mat"], encoded, action_mask, order, None)[0]
 
-    def value(self, params: Params, obs: jax.Array) -> jax.Array:
+    def value(
+        self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
+    ) -> jax.Array:
         return self.mat.value(params["mat"], obs)
 
     def loss(
@@ -95,8 +103,15 @@ class PMAT:
             params["mat"], batch, sampled.order, sampled.agent_values, ppo
         )
         scores = self.scorer.apply(params["scorer"], output.encoded)
+        advantages = batch.advantages
+        if advantages.ndim == 2:
+            mask = active_mask(batch, ppo)
+            advantages = (
+                jnp.mean(advantages, axis=1) if mask is None
+                else jax.vmap(masked_mean)(advantages, mask)
+            )
         order_loss, diagnostics = clipped_surrogate_loss(
-            order_log_prob(scores, sampled.order) - sampled.log_prob, batch.advantages, ppo.clip_eps
+            order_log_prob(scores, sampled.order) - sampled.log_prob, advantages, ppo.clip_eps
         )
         return total + ppo.order_loss_coef * order_loss, {
             **metrics,

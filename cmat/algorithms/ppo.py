@@ -49,17 +49,39 @@ def joint_log_ratio(log_probs: jax.Array, old_log_probs: jax.Array) -> jax.Array
     return jnp.sum(log_probs - old_log_probs, axis=-1)
 
 
+LOG_RATIO_BOUND = 20.0
+"""|log R| is clamped to this before `exp`. A joint log-ratio sums n per-agent terms, so with
+many agents it can pass float32's exp limit (about 88.7: exp(89) = inf, and inf·A or its
+gradient turns every parameter into NaN after global-norm clipping). Inside e^±20 (about 2e-9
+to 5e8) the loss and its gradient are unchanged; the clip range 1 ± ε sits far inside it. A
+sample beyond it contributes a constant: its ratio is no longer a meaningful trust-region
+quantity."""
+
+
+def masked_mean(x: jax.Array, mask: jax.Array | None = None) -> jax.Array:
+    """Mean of `x` over the entries where `mask` (broadcast to x) holds; plain mean without a
+    mask. An all-False mask gives 0 (the reference's sum / count with no active entry)."""
+    if mask is None:
+        return jnp.mean(x)
+    weights = jnp.broadcast_to(mask, x.shape).astype(x.dtype)
+    return jnp.sum(x * weights) / jnp.maximum(jnp.sum(weights), 1.0)
+
+
 def clipped_surrogate_loss(
-    log_ratio: jax.Array, advantages: jax.Array, clip_eps: float
+    log_ratio: jax.Array, advantages: jax.Array, clip_eps: float, mask: jax.Array | None = None
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """−E[min(R·A, clip(R, 1−ε, 1+ε)·A)] (paper eq. cmat), with PPO diagnostics."""
+    """−E[min(R·A, clip(R, 1−ε, 1+ε)·A)] (paper eq. cmat), with PPO diagnostics.
+
+    The mean runs over the entries where `mask` holds (active masks; every entry without one).
+    log R is clamped to ±`LOG_RATIO_BOUND` before `exp`."""
+    log_ratio = jnp.clip(log_ratio, -LOG_RATIO_BOUND, LOG_RATIO_BOUND)
     ratio = jnp.exp(log_ratio)
     unclipped = ratio * advantages
     clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
-    loss = -jnp.mean(jnp.minimum(unclipped, clipped))
+    loss = -masked_mean(jnp.minimum(unclipped, clipped), mask)
     diagnostics = {
-        "approx_kl": jnp.mean((ratio - 1.0) - log_ratio),
-        "clip_frac": jnp.mean((jnp.abs(ratio - 1.0) > clip_eps).astype(jnp.float32)),
+        "approx_kl": masked_mean((ratio - 1.0) - log_ratio, mask),
+        "clip_frac": masked_mean((jnp.abs(ratio - 1.0) > clip_eps).astype(jnp.float32), mask),
     }
     return loss, diagnostics
 
@@ -72,8 +94,10 @@ def value_loss(
     huber: bool,
     huber_delta: float,
     clipped: bool,
+    mask: jax.Array | None = None,
 ) -> jax.Array:
-    """Critic loss: squared or Huber error to the targets, optionally the clipped PPO form."""
+    """Critic loss: squared or Huber error to the targets, optionally the clipped PPO form,
+    averaged over the entries where `mask` holds (every entry without one)."""
 
     def error(prediction: jax.Array) -> jax.Array:
         residual = targets - prediction
@@ -85,11 +109,15 @@ def value_loss(
     if clipped:
         clipped_values = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
         loss = jnp.maximum(loss, error(clipped_values))
-    return jnp.mean(loss)
+    return masked_mean(loss, mask)
 
 
-def normalize(x: jax.Array, eps: float = 1e-8) -> jax.Array:
-    return (x - jnp.mean(x)) / (jnp.std(x) + eps)
+def normalize(x: jax.Array, mask: jax.Array | None = None, eps: float = 1e-8) -> jax.Array:
+    """(x − mean) / (std + eps), with mean and std over the entries where `mask` (broadcast to
+    x) holds, as the reference MAT and MAPPO normalise advantages over active agents only."""
+    mean = masked_mean(x, mask)
+    std = jnp.sqrt(masked_mean(jnp.square(x - mean), mask))
+    return (x - mean) / (std + eps)
 
 
 class ValueNormState(NamedTuple):

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from cmat.algorithms.cmat import CMAT
-from cmat.config import NetworkConfig
+from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.triple_bert import TripleBERTNetwork
 
@@ -21,5 +21,7 @@ class TripleBERT(CMAT):
     network: TripleBERTNetwork  # type: ignore[assignment]
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec) -> "TripleBERT":
+    def build(
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()
+    ) -> "TripleBERT":
         return cls(TripleBERTNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))

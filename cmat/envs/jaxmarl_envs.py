@@ -57,9 +57,20 @@ MPE_OPTIONS = ("num_agents", "num_landmarks", "local_ratio", "max_steps", "dt")
 class JaxMarlEnv:
     """A discrete-action JaxMARL environment with every action always available and no win."""
 
-    def __init__(self, env_id: str, env: MultiAgentEnv, has_win_rate: bool = False) -> None:
+    def __init__(
+        self,
+        env_id: str,
+        env: MultiAgentEnv,
+        has_win_rate: bool = False,
+        has_global_state: bool = False,
+    ) -> None:
         self.env = env
         agent = env.agents[0]
+        self.has_global_state = has_global_state
+        state_dim = 0
+        if has_global_state:
+            obs_shapes, _ = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+            state_dim = int(obs_shapes["world_state"].shape[-1])
         self.spec = EnvSpec(
             env_id=env_id,
             num_agents=len(env.agents),
@@ -68,14 +79,17 @@ class JaxMarlEnv:
             discrete=True,
             max_episode_steps=env.max_steps + 1,
             has_win_rate=has_win_rate,
+            state_dim=state_dim,
         )
 
     def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
         """Start an episode."""
         obs, state = self.env.reset(key)
         false = jnp.asarray(False)
-        mask = self._action_mask(state)
-        return state, TimeStep(self._obs(obs), mask, jnp.float32(0.0), false, false)
+        return state, TimeStep(
+            self._obs(obs), self._action_mask(state), jnp.float32(0.0), false, false,
+            self._alive(state), self._global_state(obs),
+        )
 
     def step(self, key: jax.Array, state: Any, actions: jax.Array) -> tuple[Any, TimeStep]:
         """Take joint `actions` [n_agents]; on `done`, return the next episode's first state."""
@@ -86,9 +100,12 @@ class JaxMarlEnv:
         won = done & self._won(next_state)
         reset_obs, reset_state = self.env.reset(reset_key)
         state = jax.tree.map(lambda r, s: jnp.where(done, r, s), reset_state, next_state)
+        global_state = jnp.where(done, self._global_state(reset_obs), self._global_state(obs))
         obs = jnp.where(done, self._obs(reset_obs), self._obs(obs))
         reward = jnp.mean(self._stack(rewards)).astype(jnp.float32)
-        return state, TimeStep(obs, self._action_mask(state), reward, done, won)
+        return state, TimeStep(
+            obs, self._action_mask(state), reward, done, won, self._alive(state), global_state
+        )
 
     def _stack(self, per_agent: dict[str, jax.Array]) -> jax.Array:
         return jnp.stack([per_agent[agent] for agent in self.env.agents])
@@ -102,9 +119,21 @@ class JaxMarlEnv:
     def _won(self, state: Any) -> jax.Array:
         return jnp.asarray(False)
 
+    def _alive(self, state: Any) -> jax.Array:
+        return jnp.ones(self.spec.num_agents, dtype=bool)
+
+    def _global_state(self, obs: dict[str, jax.Array]) -> jax.Array:
+        if not self.has_global_state:
+            return jnp.zeros(0, jnp.float32)
+        return obs["world_state"].astype(jnp.float32)
+
 
 class SmaxEnv(JaxMarlEnv):
     """SMAX against JaxMARL's heuristic enemy; `won` is SMAX's won-battle condition.
+
+    The global state is SMAX's world state (every unit's features, `get_world_state`), the input
+    of JaxMARL's own MAPPO critic on SMAX (`baselines/MAPPO/mappo_rnn_smax.py`); `alive` is
+    `unit_alive` of the allies.
 
     A battle is won when every enemy is dead and at least one ally is alive (all dead is a draw),
     exactly when SMAX pays its `won_battle_bonus`. Dead allies may only take the stop action.
@@ -117,10 +146,13 @@ class SmaxEnv(JaxMarlEnv):
             )
         else:
             env = HeuristicEnemySMAX(scenario=map_name_to_scenario(scenario), **kwargs)
-        super().__init__(f"smax:{scenario}", env, has_win_rate=True)
+        super().__init__(f"smax:{scenario}", env, has_win_rate=True, has_global_state=True)
 
     def _action_mask(self, state: Any) -> jax.Array:
         return self._stack(self.env.get_avail_actions(state)).astype(bool)
+
+    def _alive(self, state: Any) -> jax.Array:
+        return state.state.unit_alive[: self.env.num_allies]
 
     def _won(self, state: Any) -> jax.Array:
         alive, n_allies = state.state.unit_alive, self.env.num_allies

@@ -62,6 +62,8 @@ class MatrixGame:
             reward=reward,
             done=jnp.asarray(done),
             won=jnp.asarray(False),
+            alive=jnp.ones(2, dtype=bool),
+            global_state=jnp.zeros(0, jnp.float32),
         )
 
 

@@ -27,6 +27,9 @@ class EnvSpec:
     action_low: float = -1.0
     """Lower Box bound of continuous actions (actions are clipped to it before stepping)."""
     action_high: float = 1.0
+    state_dim: int = 0
+    """Size of the environment's global state (`TimeStep.global_state`); 0 where it has none,
+    and centralised critics that want one then read all agents' observations concatenated."""
 
 
 class TimeStep(NamedTuple):
@@ -42,6 +45,13 @@ class TimeStep(NamedTuple):
     """[] bool: the transition just taken ended the episode (terminal or time limit)."""
     won: jax.Array
     """[] bool: the episode that just ended was won (False where undefined or not done)."""
+    alive: jax.Array
+    """[n_agents] bool: which agents are active in `obs` (a dead SMAX unit, a PettingZoo agent
+    that left or has not joined: False). Inactive agents still get a forced action; the
+    reference MAT, MAPPO and HAPPO leave them out of their loss means (active masks)."""
+    global_state: jax.Array
+    """[state_dim] float32: the environment's global state (SMAX: JaxMARL's world state);
+    shape [0] where the environment has none."""
 
 
 class MarlEnv(Protocol):

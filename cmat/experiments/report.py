@@ -113,7 +113,8 @@ def collect_lines(plan: Plan) -> dict[str, list[Line]]:
 
 def task_metric(lines: list[Line]) -> str:
     for line in lines:
-        if any(r["kind"] == "eval" and r.get("win_rate", "") != "" for r in line.rows):
+        if any(r["kind"] == "eval" and r.get("win_rate", "") not in ("", "nan")
+               for r in line.rows):
             return "win_rate"
     return "episode_return"
 
@@ -310,7 +311,7 @@ def summarise(
         metric = metrics[env.id]
         trained = [run.config for line in lines.get(env.id, []) for run in line.runs
                    if run.config is not None and run.config.finetune is None]
-        steps = (max(c.num_updates * c.steps_per_update for c in trained) if trained
+        steps = (max(c.budget_steps for c in trained) if trained
                  else env.steps)  # a run rounds its budget up to whole updates
         entry: dict[str, Any] = {"env": env.id, "label": env.label, "metric": metric,
                                  "steps": steps, "lines": {}}

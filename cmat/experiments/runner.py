@@ -267,7 +267,7 @@ def inspect(run: Run) -> tuple[str, str]:
         _, steps = run_dir.load_checkpoint()
     except CmatError as error:
         return REDO, str(error)
-    target = expected.num_updates * expected.steps_per_update
+    target = expected.budget_steps
     if steps > target:
         return REDO, f"checkpoint at {steps} env steps, past the spec's {target}"
     if steps > 0:

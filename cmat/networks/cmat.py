@@ -26,7 +26,7 @@ import flax.linen as nn
 
 from cmat.config import NetworkConfig, resolve_iterations
 from cmat.networks.layers import (
-    HIDDEN_GAIN, Compressor, DecoderBlock, KeyValues, ObservationEncoder, dense,
+    HIDDEN_GAIN, SMALL_GAIN, Compressor, DecoderBlock, KeyValues, ObservationEncoder, dense,
 )
 
 
@@ -88,6 +88,8 @@ class ActionHead(nn.Module):
     action_dim: int
     discrete: bool
     init_gain: float
+    log_std_init: float = 1.0
+    """Initial log-std of continuous heads (std = sigmoid(log_std) · 0.5, reference MAT)."""
 
     @nn.compact
     def __call__(
@@ -97,19 +99,22 @@ class ActionHead(nn.Module):
         hidden = nn.LayerNorm()(nn.gelu(first))
         params = dense(self.action_dim, self.init_gain, name="Dense_1")(hidden)
         log_std = self.param(
-            "log_std", nn.initializers.zeros, (0 if self.discrete else self.action_dim,)
+            "log_std", nn.initializers.constant(self.log_std_init),
+            (0 if self.discrete else self.action_dim,),
         )
         return params, log_std
 
 
 class ValueHead(nn.Module):
-    """Critic-MLP(e0) -> V(O) (paper eq. critic)."""
+    """Critic-MLP(e0) -> V(O) (paper eq. critic); the output layer starts with `gain` (the
+    reference MAT's value head: gain 0.01)."""
 
     n_embd: int
+    gain: float = SMALL_GAIN
 
     @nn.compact
     def __call__(self, e0: jax.Array) -> jax.Array:
-        return dense(1, 1.0)(nn.gelu(dense(self.n_embd)(e0)))[..., 0]
+        return dense(1, self.gain)(nn.gelu(dense(self.n_embd)(e0)))[..., 0]
 
 
 class LatentConsensus(nn.Module):
@@ -160,13 +165,16 @@ class ConsensusDecoder(nn.Module):
     n_head: int
     n_block: int
     iterations: int
+    gain: float = SMALL_GAIN
 
     @nn.compact
     def __call__(self, e0: jax.Array, encoded: jax.Array) -> jax.Array:
         """e0 [..., d], encoded [..., n, d] -> E = [e0..em] as [..., m+1, d]."""
         if self.iterations == 0:
             return e0[..., None, :]
-        blocks = [DecoderBlock(self.n_embd, self.n_head) for _ in range(self.n_block)]
+        blocks = [
+            DecoderBlock(self.n_embd, self.n_head, self.gain) for _ in range(self.n_block)
+        ]
         positions = self.param(
             "positions", nn.initializers.normal(0.02), (self.iterations, self.n_embd)
         )
@@ -196,14 +204,19 @@ class CMATNetwork(nn.Module):
 
     def setup(self) -> None:
         cfg = self.config
-        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block)
-        self.critic_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd)
-        self.critic_mlp = ValueHead(cfg.n_embd)
-        self.decoder = ConsensusDecoder(cfg.n_embd, cfg.n_head, cfg.n_block, self.iterations)
-        self.actor_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd)
+        gain = cfg.init_gain
+        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain)
+        self.critic_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd, gain)
+        self.critic_mlp = ValueHead(cfg.n_embd, gain)
+        self.decoder = ConsensusDecoder(
+            cfg.n_embd, cfg.n_head, cfg.n_block, self.iterations, gain
+        )
+        self.actor_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd, gain)
         stochastic = cfg.consensus_policy != "deterministic"
-        actor_gain = cfg.latent_head_gain if stochastic else cfg.init_gain
-        self.actor_mlp = ActionHead(cfg.n_embd, self.action_dim, self.discrete, actor_gain)
+        actor_gain = cfg.latent_head_gain if stochastic else gain
+        self.actor_mlp = ActionHead(
+            cfg.n_embd, self.action_dim, self.discrete, actor_gain, cfg.log_std_init
+        )
         if stochastic:
             self.latent_consensus = LatentConsensus(
                 cfg.consensus_policy, cfg.consensus_codes, cfg.n_embd, cfg.latent_head_gain

@@ -12,6 +12,12 @@ import flax.linen as nn
 import numpy as np
 
 HIDDEN_GAIN = float(np.sqrt(2.0))
+"""Orthogonal gain of layers followed by an activation (the reference MAT's `activate=True`:
+`calculate_gain('relu')`)."""
+SMALL_GAIN = 0.01
+"""Orthogonal gain of the reference MAT's other layers (its `init_` default, gain=0.01): the
+query, key, value and output projections, the second feed-forward layer, the output heads.
+Blocks take it as their `gain` (`NetworkConfig.init_gain`)."""
 
 
 def dense(features: int, gain: float = HIDDEN_GAIN, name: str | None = None) -> nn.Dense:
@@ -47,12 +53,14 @@ class MultiHeadAttention(nn.Module):
 
     n_embd: int
     n_head: int
+    gain: float = SMALL_GAIN
+    """Orthogonal gain of the four projections."""
 
     def setup(self) -> None:
-        self.query = dense(self.n_embd, 1.0)
-        self.key = dense(self.n_embd, 1.0)
-        self.value = dense(self.n_embd, 1.0)
-        self.out = dense(self.n_embd, 1.0)
+        self.query = dense(self.n_embd, self.gain)
+        self.key = dense(self.n_embd, self.gain)
+        self.value = dense(self.n_embd, self.gain)
+        self.out = dense(self.n_embd, self.gain)
 
     def split_heads(self, x: jax.Array) -> jax.Array:
         """[..., L, d] -> [..., heads, L, d/heads]."""
@@ -81,11 +89,14 @@ class MultiHeadAttention(nn.Module):
 
 
 class FeedForward(nn.Module):
+    """Dense (ReLU gain) → GELU → Dense (`gain`), the reference block MLP."""
+
     n_embd: int
+    gain: float = SMALL_GAIN
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        return dense(self.n_embd, 1.0)(nn.gelu(dense(self.n_embd)(x)))
+        return dense(self.n_embd, self.gain)(nn.gelu(dense(self.n_embd)(x)))
 
 
 class EncoderBlock(nn.Module):
@@ -93,11 +104,12 @@ class EncoderBlock(nn.Module):
 
     n_embd: int
     n_head: int
+    gain: float = SMALL_GAIN
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        x = nn.LayerNorm()(x + MultiHeadAttention(self.n_embd, self.n_head)(x, x))
-        return nn.LayerNorm()(x + FeedForward(self.n_embd)(x))
+        x = nn.LayerNorm()(x + MultiHeadAttention(self.n_embd, self.n_head, self.gain)(x, x))
+        return nn.LayerNorm()(x + FeedForward(self.n_embd, self.gain)(x))
 
 
 class ObservationEncoder(nn.Module):
@@ -106,13 +118,14 @@ class ObservationEncoder(nn.Module):
     n_embd: int
     n_head: int
     n_block: int
+    gain: float = SMALL_GAIN
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
         x = nn.gelu(dense(self.n_embd)(nn.LayerNorm()(obs)))
         x = nn.LayerNorm()(x)
         for _ in range(self.n_block):
-            x = EncoderBlock(self.n_embd, self.n_head)(x)
+            x = EncoderBlock(self.n_embd, self.n_head, self.gain)(x)
         return x
 
 
@@ -122,19 +135,23 @@ class Compressor(nn.Module):
     M = softmax over the N inputs of MLP(x) in R^{N x h}; z = Mᵀx in R^{h x d};
     y = MLP(flatten z). Permutation invariant over the N inputs. Mᵀ is formed directly
     (softmax along its rows), so z = Mᵀx is a plain batched matmul with no transposed operand.
+    The paper's code is built on the reference MAT's, so its convention applies: the layers
+    not followed by an activation (the mixture scores and the output) start with `gain`, so the
+    initial mixture is close to a uniform mean over the inputs.
     """
 
     n_embd: int
     heads: int
     out_features: int
+    gain: float = SMALL_GAIN
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        scores = dense(self.heads, 1.0)(nn.gelu(dense(self.n_embd)(x)))
+        scores = dense(self.heads, self.gain)(nn.gelu(dense(self.n_embd)(x)))
         mixture_transposed = jax.nn.softmax(jnp.swapaxes(scores, -1, -2), axis=-1)
         pooled = mixture_transposed @ x
         flat = pooled.reshape(*pooled.shape[:-2], self.heads * x.shape[-1])
-        return dense(self.out_features, 1.0)(nn.gelu(dense(self.n_embd)(flat)))
+        return dense(self.out_features, self.gain)(nn.gelu(dense(self.n_embd)(flat)))
 
 
 class DecoderBlock(nn.Module):
@@ -146,11 +163,12 @@ class DecoderBlock(nn.Module):
 
     n_embd: int
     n_head: int
+    gain: float = SMALL_GAIN
 
     def setup(self) -> None:
-        self.self_attention = MultiHeadAttention(self.n_embd, self.n_head)
-        self.cross_attention = MultiHeadAttention(self.n_embd, self.n_head)
-        self.feed_forward = FeedForward(self.n_embd)
+        self.self_attention = MultiHeadAttention(self.n_embd, self.n_head, self.gain)
+        self.cross_attention = MultiHeadAttention(self.n_embd, self.n_head, self.gain)
+        self.feed_forward = FeedForward(self.n_embd, self.gain)
         self.norms = [nn.LayerNorm() for _ in range(3)]
 
     def step(

@@ -26,7 +26,7 @@ from cmat.algorithms.distributions import action_distribution, greedy_action
 from cmat.config import NetworkConfig
 from cmat.networks.cmat import MASKED_LOGIT, ActionHead
 from cmat.networks.layers import (
-    FeedForward, KeyValues, MultiHeadAttention, ObservationEncoder, dense, extend,
+    SMALL_GAIN, FeedForward, KeyValues, MultiHeadAttention, ObservationEncoder, dense, extend,
 )
 
 
@@ -59,11 +59,12 @@ class MATDecodeBlock(nn.Module):
 
     n_embd: int
     n_head: int
+    gain: float = SMALL_GAIN
 
     def setup(self) -> None:
-        self.token_attention = MultiHeadAttention(self.n_embd, self.n_head)
-        self.agent_attention = MultiHeadAttention(self.n_embd, self.n_head)
-        self.feed_forward = FeedForward(self.n_embd)
+        self.token_attention = MultiHeadAttention(self.n_embd, self.n_head, self.gain)
+        self.agent_attention = MultiHeadAttention(self.n_embd, self.n_head, self.gain)
+        self.feed_forward = FeedForward(self.n_embd, self.gain)
         self.norms = [nn.LayerNorm() for _ in range(3)]
 
     def step(
@@ -120,12 +121,13 @@ class MATNetwork(nn.Module):
 
     def setup(self) -> None:
         cfg = self.config
-        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block)
-        self.value_head = AgentValueHead(cfg.n_embd, cfg.init_gain)
+        gain = cfg.init_gain
+        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain)
+        self.value_head = AgentValueHead(cfg.n_embd, gain)
         self.action_embedding = dense(cfg.n_embd)
         self.token_norm = nn.LayerNorm()
-        self.blocks = [MATDecodeBlock(cfg.n_embd, cfg.n_head) for _ in range(cfg.n_block)]
-        self.head = ActionHead(cfg.n_embd, self.action_dim, self.discrete, cfg.init_gain)
+        self.blocks = [MATDecodeBlock(cfg.n_embd, cfg.n_head, gain) for _ in range(cfg.n_block)]
+        self.head = ActionHead(cfg.n_embd, self.action_dim, self.discrete, gain, cfg.log_std_init)
 
     def encode(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Ô [n, d] and the per-agent values V(ô_i) [n]."""

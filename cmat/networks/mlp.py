@@ -34,12 +34,16 @@ class MLPActor(nn.Module):
     action_dim: int
     discrete: bool
     init_gain: float
+    log_std_init: float = 1.0
+    """Initial log-std of continuous actions (std = sigmoid(log_std) · 0.5, as every cmat
+    policy; the reference MAPPO's DiagGaussian uses std = exp(log_std), README)."""
 
     @nn.compact
     def __call__(self, x: jax.Array, action_mask: jax.Array) -> tuple[jax.Array, jax.Array]:
         action_params = dense(self.action_dim, self.init_gain)(MLPTrunk(self.hidden)(x))
         log_std = self.param(
-            "log_std", nn.initializers.zeros, (0 if self.discrete else self.action_dim,)
+            "log_std", nn.initializers.constant(self.log_std_init),
+            (0 if self.discrete else self.action_dim,),
         )
         if self.discrete:
             action_params = jnp.where(action_mask, action_params, MASKED_LOGIT)
@@ -47,12 +51,12 @@ class MLPActor(nn.Module):
 
 
 class MLPCritic(nn.Module):
-    """V(s) of the team, with the global state s = all agents' observations concatenated."""
+    """V(s) of the team from a global state vector s (the reference R_Critic: output layer
+    gain 1)."""
 
     hidden: int
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:
-        """obs [..., n, obs_dim] -> [...]"""
-        state = obs.reshape(*obs.shape[:-2], obs.shape[-2] * obs.shape[-1])
+    def __call__(self, state: jax.Array) -> jax.Array:
+        """state [..., s] -> [...]"""
         return dense(1, 1.0)(MLPTrunk(self.hidden)(state))[..., 0]

@@ -39,10 +39,13 @@ class TripleBERTNetwork(nn.Module):
 
     def setup(self) -> None:
         cfg = self.config
-        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block)
-        self.critic_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd)
-        self.critic_mlp = ValueHead(cfg.n_embd)
-        self.actor_mlp = ActionHead(cfg.n_embd, self.action_dim, self.discrete, cfg.init_gain)
+        gain = cfg.init_gain
+        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain)
+        self.critic_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd, gain)
+        self.critic_mlp = ValueHead(cfg.n_embd, gain)
+        self.actor_mlp = ActionHead(
+            cfg.n_embd, self.action_dim, self.discrete, gain, cfg.log_std_init
+        )
 
     def value(self, obs: jax.Array) -> jax.Array:
         return self.critic_mlp(self.critic_compressor(self.encoder(obs)))

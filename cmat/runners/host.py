@@ -44,19 +44,23 @@ class SpecOnly:
     spec: EnvSpec
 
 
-def host_state(setup: TrainSetup, rng: jax.Array, obs: jax.Array, mask: jax.Array) -> TrainerState:
-    """A fresh state of one seed whose environments show `obs`, `mask` [envs, n, ...]; no
-    environment state lives in it (`env_state` is empty)."""
+def host_state(
+    setup: TrainSetup, rng: jax.Array, obs: jax.Array, mask: jax.Array, alive: jax.Array,
+    global_state: jax.Array,
+) -> TrainerState:
+    """A fresh state of one seed whose environments show `obs`, `mask`, `alive`,
+    `global_state` [envs, ...]; no environment state lives in it (`env_state` is empty)."""
     rng, init_key = jax.random.split(rng)
     params = setup.algorithm.init(init_key, obs[0], mask[0])
     envs = obs.shape[0]
+    zeros = jnp.zeros(envs, bool)
     return TrainerState(
         params=params,
         target_params=params,
         opt_state=setup.optimizer.init(params),
         value_norm=ppo_lib.value_norm_init(),
         env_state=(),
-        timestep=TimeStep(obs, mask, jnp.zeros(envs), jnp.zeros(envs, bool), jnp.zeros(envs, bool)),
+        timestep=TimeStep(obs, mask, jnp.zeros(envs), zeros, zeros, alive, global_state),
         episode_return=jnp.zeros(envs),
         rng=rng,
         update_step=jnp.zeros((), jnp.int32),
@@ -64,15 +68,19 @@ def host_state(setup: TrainSetup, rng: jax.Array, obs: jax.Array, mask: jax.Arra
 
 
 def policy_step(
-    setup: TrainSetup, params: Params, rng: jax.Array, obs: jax.Array, mask: jax.Array
+    setup: TrainSetup, params: Params, rng: jax.Array, obs: jax.Array, mask: jax.Array,
+    global_state: jax.Array | None = None,
 ) -> tuple[jax.Array, ActResult, jax.Array]:
     """Sample actions for every environment of every seed ([seeds, envs, ...]); returns the
-    seeds' next keys, what `act` returned, and the actions to send (clipped to the Box)."""
+    seeds' next keys, what `act` returned, and the actions to send (clipped to the Box).
+    `global_state` [seeds, envs, state_dim] may be left out where the env has none."""
     envs = obs.shape[1]
+    if global_state is None:
+        global_state = jnp.zeros((*obs.shape[:2], 0))
     keys = jax.vmap(jax.random.split)(rng)
     act_keys = jax.vmap(lambda key: jax.random.split(key, envs))(keys[:, 1])
-    act = jax.vmap(jax.vmap(setup.algorithm.act, in_axes=(None, 0, 0, 0)))
-    acted = act(params, obs, mask, act_keys)
+    act = jax.vmap(jax.vmap(setup.algorithm.act, in_axes=(None, 0, 0, 0, 0)))
+    acted = act(params, obs, mask, act_keys, global_state)
     return keys[:, 0], acted, env_actions(setup.spec, acted.actions)
 
 
@@ -138,7 +146,7 @@ class HostTrainer:
 
     def _per_seed(self, batch: np.ndarray) -> np.ndarray:
         """[seeds·envs, ...] → [seeds, envs, ...]."""
-        return batch.reshape(self.config.seeds, -1, *batch.shape[1:])
+        return batch.reshape(self.config.seeds, batch.shape[0] // self.config.seeds, *batch.shape[1:])
 
     def _state_timestep(self, timestep: HostTimeStep) -> TimeStep:
         return TimeStep(*(jnp.asarray(self._per_seed(np.asarray(x))) for x in timestep))
@@ -172,8 +180,10 @@ class HostTrainer:
         """Fresh state for every seed, initialised seed by seed (see `trainer.make_train`)."""
         timestep = self._start_episodes()
         obs, mask = self._per_seed(timestep.obs), self._per_seed(timestep.action_mask)
+        alive, global_state = self._per_seed(timestep.alive), self._per_seed(timestep.global_state)
         states = [
-            self._init(key, obs[k], mask[k]) for k, key in enumerate(self.seed_keys())
+            self._init(key, obs[k], mask[k], alive[k], global_state[k])
+            for k, key in enumerate(self.seed_keys())
         ]
         return jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
 
@@ -187,16 +197,19 @@ class HostTrainer:
         for _ in range(self.config.rollout_length):
             obs = self._per_seed(timestep.obs)
             mask = self._per_seed(timestep.action_mask)
-            rng, acted, actions = self._policy(state.params, rng, obs, mask)
+            alive, global_state = (
+                self._per_seed(timestep.alive), self._per_seed(timestep.global_state)
+            )
+            rng, acted, actions = self._policy(state.params, rng, obs, mask, global_state)
             actions = np.asarray(actions)
             timestep = self._pool.step(actions.reshape(-1, *actions.shape[2:]))
             reward, done = self._per_seed(timestep.reward), self._per_seed(timestep.done)
             running = running + reward
             steps.append((obs, mask, acted, reward, done, self._per_seed(timestep.won),
-                          np.where(done, running, 0.0).astype(np.float32)))
+                          np.where(done, running, 0.0).astype(np.float32), alive, global_state))
             running = np.where(done, 0.0, running).astype(np.float32)
         self._timestep, self._episode_return = timestep, running
-        obs, mask, acted, reward, done, won, finished = zip(*steps)
+        obs, mask, acted, reward, done, won, finished, alive, global_state = zip(*steps)
         acted = jax.tree.map(lambda *x: jnp.stack(x), *acted)
         rollout = Transition(
             obs=jnp.asarray(np.stack(obs)),
@@ -208,6 +221,8 @@ class HostTrainer:
             done=jnp.asarray(np.stack(done)),
             won=jnp.asarray(np.stack(won)),
             finished_return=jnp.asarray(np.stack(finished)),
+            alive=jnp.asarray(np.stack(alive)),
+            global_state=jnp.asarray(np.stack(global_state)),
             extras=acted.extras,
         )
         state = state.replace(
@@ -215,12 +230,15 @@ class HostTrainer:
         )
         return state, rollout
 
-    def train_chunk(self, state: TrainerState) -> tuple[TrainerState, dict[str, np.ndarray]]:
-        """`updates_per_log` updates: collect on the host, then the jitted `learn`."""
+    def train_chunk(
+        self, state: TrainerState, updates: int | None = None
+    ) -> tuple[TrainerState, dict[str, np.ndarray]]:
+        """`updates` (default `updates_per_log`) updates: collect on the host, then the jitted
+        `learn`."""
         if self._timestep is None:  # after from_bytes: the simulators' episodes restart
             self._start_episodes()
         per_update = []
-        for _ in range(self.config.updates_per_log):
+        for _ in range(self.config.updates_per_log if updates is None else updates):
             state, rollout = self.collect(state)
             state, metrics = self._learn(state, rollout)
             per_update.append(metrics)
@@ -285,7 +303,9 @@ class HostTrainer:
         spec, envs = self.env_spec, self.config.num_envs
         obs = jax.ShapeDtypeStruct((envs, spec.num_agents, spec.obs_dim), jnp.float32)
         mask = jax.ShapeDtypeStruct((envs, spec.num_agents, spec.action_dim), jnp.bool_)
-        template = jax.eval_shape(self._init, self.seed_keys()[0], obs, mask)
+        alive = jax.ShapeDtypeStruct((envs, spec.num_agents), jnp.bool_)
+        global_state = jax.ShapeDtypeStruct((envs, spec.state_dim), jnp.float32)
+        template = jax.eval_shape(self._init, self.seed_keys()[0], obs, mask, alive, global_state)
         state = restore_state(template, self.config.seeds, data)
         self._timestep = None
         return state

@@ -24,20 +24,23 @@ RESULT_KEYS = ("env_steps", "episode_return", "win_rate")
 def run_training(
     trainer: Trainer, run_dir: RunDir, resume: bool, start: TrainerState | None = None
 ) -> None:
-    """Train in chunks of `updates_per_log` updates until `num_updates` are done.
+    """Train in chunks of `updates_per_log` updates until exactly `num_updates` are done (the
+    last chunk may be shorter; `TrainConfig.num_updates` is the one rounding rule).
 
     After each chunk: a train and an eval row per seed in metrics.csv and TensorBoard (where
     charts/steps_per_second counts the steps of all seeds), then the checkpoint. Resuming
     continues from the checkpoint and drops metric rows written after it. An interruption
-    leaves the rows and the checkpoint of the last completed chunk. A new run starts from
-    `start` where given (a fine-tuning run's state, cmat.runners.finetune), else `trainer.init()`.
+    leaves the rows and the checkpoint of the last completed chunk. A chunk with a non-finite
+    loss, gradient norm or parameter raises `CmatError` naming the update, before anything of it
+    is written, so the last good checkpoint stays as it was. A new run starts from `start`
+    where given (a fine-tuning run's state, cmat.runners.finetune), else `trainer.init()`.
     """
     config = trainer.config
     if resume:
         data, _ = run_dir.load_checkpoint()
         state = trainer.from_bytes(data)
         done = trainer.env_steps(state)
-        if config.num_updates * config.steps_per_update < done:
+        if config.budget_steps < done:
             raise CmatError(
                 f"steps ({config.total_steps}) is below the {done} env steps already done"
             )
@@ -47,16 +50,17 @@ def run_training(
         state = trainer.init() if start is None else start
         done = trainer.env_steps(state)
         run_dir.save_checkpoint(trainer.to_bytes(state), done)
-    chunk_steps = config.updates_per_log * config.steps_per_update
-    chunks = math.ceil((config.num_updates * config.steps_per_update - done) / chunk_steps)
+    remaining = (config.budget_steps - done) // config.steps_per_update
+    chunks = [config.updates_per_log] * (remaining // config.updates_per_log)
+    chunks += [remaining % config.updates_per_log] if remaining % config.updates_per_log else []
     try:
         with (
             run_dir.summary_writer(purge_step=done + 1 if resume else None) as writer,
-            tqdm(total=done + chunks * chunk_steps, initial=done, unit="step", unit_scale=True,
+            tqdm(total=config.budget_steps, initial=done, unit="step", unit_scale=True,
                  desc=config.env, dynamic_ncols=True) as bar,
         ):
-            for _ in range(chunks):
-                state = run_chunk(trainer, state, run_dir, writer, bar)
+            for updates in chunks:
+                state = run_chunk(trainer, state, run_dir, writer, bar, updates)
     except KeyboardInterrupt:
         run_dir.truncate_metrics(run_dir.load_checkpoint()[1])
         raise
@@ -64,13 +68,15 @@ def run_training(
 
 
 def run_chunk(
-    trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: SummaryWriter, bar: tqdm
+    trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: SummaryWriter, bar: tqdm,
+    updates: int,
 ) -> TrainerState:
-    """One chunk of updates, its evaluation, its logs and its checkpoint."""
+    """`updates` updates, their evaluation, logs and checkpoint."""
     config = trainer.config
     before = trainer.env_steps(state)
     start = time.perf_counter()
-    state, train = trainer.train_chunk(state)
+    state, train = trainer.train_chunk(state, updates)
+    stop_if_nonfinite(train, before // config.steps_per_update, config.seed, run_dir)
     steps = trainer.env_steps(state)
     steps_per_second = (steps - before) * config.seeds / (time.perf_counter() - start)
     evaluation = trainer.evaluate(state, config.eval_episodes, seed=config.seed)
@@ -82,6 +88,26 @@ def run_chunk(
     bar.set_postfix(postfix(evaluation, trainer.env_spec.has_win_rate), refresh=False)
     bar.update(steps - before)
     return state
+
+
+def stop_if_nonfinite(
+    train: dict[str, np.ndarray], updates_before: int, base_seed: int, run_dir: RunDir
+) -> None:
+    """Raise `CmatError` naming the first update (1-based, counted over the run) and seed whose
+    loss, gradient norm or parameters were not finite; pops the two flags from `train`."""
+    from cmat.runners.trainer import NONFINITE_QUANTITIES
+
+    first = train.pop("nonfinite_update").astype(int)
+    codes = train.pop("nonfinite_code").astype(int)
+    bad = np.flatnonzero(first >= 0)
+    if bad.size == 0:
+        return
+    seed = bad[np.argmin(first[bad])]
+    raise CmatError(
+        f"non-finite {NONFINITE_QUANTITIES[codes[seed] - 1]} at update "
+        f"{updates_before + first[seed] + 1} (seed {base_seed + seed}); training stopped and the "
+        f"last good checkpoint ({updates_before} updates) is left as it was in {run_dir.path}"
+    )
 
 
 def seed_rows(kind: str, metrics: Mapping[str, np.ndarray], base_seed: int) -> list[Row]:

@@ -56,6 +56,10 @@ class Transition(NamedTuple):
     won: jax.Array
     finished_return: jax.Array
     """Return of the episode this step ended (0 where it ended none)."""
+    alive: jax.Array
+    """[n] agents active in `obs`."""
+    global_state: jax.Array
+    """[state_dim] the environment's global state at `obs`."""
     extras: Any
 
 
@@ -77,7 +81,7 @@ def build_setup(config: TrainConfig, env: MarlEnv | None = None) -> TrainSetup:
     """The setup of `config`; `env` replaces the registry's environment (the host runner passes
     one that holds only its `spec`, since it steps its environments outside the program)."""
     env = env if env is not None else make_env(config.env, **config.env_kwargs)
-    algorithm = build_algorithm(config.algo, config.network, env.spec)
+    algorithm = build_algorithm(config.algo, config.network, env.spec, config.ppo)
     return TrainSetup(config, env, algorithm, build_optimizer(config))
 
 
@@ -133,8 +137,8 @@ def collect_rollout(setup: TrainSetup, state: TrainerState) -> tuple[TrainerStat
     def env_step(state: TrainerState, key: jax.Array) -> tuple[TrainerState, Transition]:
         act_keys, step_keys = jnp.split(jax.random.split(key, 2 * num_envs), 2)
         observed = state.timestep
-        acted = jax.vmap(setup.algorithm.act, in_axes=(None, 0, 0, 0))(
-            state.params, observed.obs, observed.action_mask, act_keys
+        acted = jax.vmap(setup.algorithm.act, in_axes=(None, 0, 0, 0, 0))(
+            state.params, observed.obs, observed.action_mask, act_keys, observed.global_state
         )
         env_state, timestep = jax.vmap(setup.env.step)(
             step_keys, state.env_state, env_actions(setup.spec, acted.actions)
@@ -150,6 +154,8 @@ def collect_rollout(setup: TrainSetup, state: TrainerState) -> tuple[TrainerStat
             done=timestep.done,
             won=timestep.won,
             finished_return=jnp.where(timestep.done, running, 0.0),
+            alive=observed.alive,
+            global_state=observed.global_state,
             extras=acted.extras,
         )
         state = state.replace(
@@ -165,11 +171,17 @@ def collect_rollout(setup: TrainSetup, state: TrainerState) -> tuple[TrainerStat
     return state.replace(rng=rng), rollout
 
 
-def team_values(setup: TrainSetup, params: Params, obs: jax.Array) -> jax.Array:
-    """V(O) for observations with any leading axes, one batched network call."""
+def critic_values(
+    setup: TrainSetup, params: Params, obs: jax.Array, global_state: jax.Array
+) -> jax.Array:
+    """The algorithm's values for observations [..., n, obs_dim] and global states
+    [..., state_dim] with any leading axes, in one batched network call: [...] team values, or
+    [..., n] per-agent ones."""
     lead = obs.shape[:-2]
-    flat = obs.reshape(-1, *obs.shape[-2:])
-    return jax.vmap(setup.algorithm.value, in_axes=(None, 0))(params, flat).reshape(lead)
+    flat_obs = obs.reshape(-1, *obs.shape[-2:])
+    flat_state = global_state.reshape(flat_obs.shape[0], global_state.shape[-1])
+    values = jax.vmap(setup.algorithm.value, in_axes=(None, 0, 0))(params, flat_obs, flat_state)
+    return values.reshape(*lead, *values.shape[1:])
 
 
 def value_to_returns_space(setup: TrainSetup, norm: ppo_lib.ValueNormState, v: jax.Array) -> jax.Array:
@@ -179,15 +191,23 @@ def value_to_returns_space(setup: TrainSetup, norm: ppo_lib.ValueNormState, v: j
 def make_batch(
     setup: TrainSetup, state: TrainerState, rollout: Transition
 ) -> tuple[ppo_lib.ValueNormState, Batch]:
-    """GAE with the target critic V_φ- (Algorithm 1) and normalised value targets."""
+    """GAE with the target critic V_φ- (Algorithm 1) and normalised value targets.
+
+    Team values [T, envs] give one advantage per step; per-agent values [T, envs, n] (MAT's
+    per-agent GAE) give one per agent, from the shared team reward and episode ends. With
+    `ppo.active_masks` the advantages are normalised over active agents only (the reference
+    MAT and MAPPO set inactive entries to NaN and take nanmean / nanstd)."""
     ppo = setup.config.ppo
     all_obs = jnp.concatenate([rollout.obs, state.timestep.obs[None]], axis=0)
+    all_states = jnp.concatenate([rollout.global_state, state.timestep.global_state[None]], axis=0)
     target_values = value_to_returns_space(
-        setup, state.value_norm, team_values(setup, state.target_params, all_obs)
+        setup, state.value_norm, critic_values(setup, state.target_params, all_obs, all_states)
     )
+    agent_axes = target_values.ndim - rollout.reward.ndim
+    rewards = rollout.reward.reshape(*rollout.reward.shape, *(1,) * agent_axes)
+    dones = rollout.done.reshape(*rollout.done.shape, *(1,) * agent_axes)
     advantages, returns = ppo_lib.generalized_advantages(
-        rollout.reward, target_values[:-1], rollout.done, target_values[-1],
-        ppo.gamma, ppo.gae_lambda,
+        rewards, target_values[:-1], dones, target_values[-1], ppo.gamma, ppo.gae_lambda,
     )
     value_norm = state.value_norm
     targets = returns
@@ -195,10 +215,16 @@ def make_batch(
         value_norm = ppo_lib.value_norm_update(value_norm, returns)
         targets = ppo_lib.value_norm_normalize(value_norm, returns)
     if ppo.normalize_advantages:
-        advantages = ppo_lib.normalize(advantages)
+        if ppo.active_masks:
+            per_agent = advantages if agent_axes else advantages[..., None]
+            statistics = jnp.broadcast_to(per_agent, rollout.alive.shape)
+            normalised = ppo_lib.normalize(statistics, rollout.alive)
+            advantages = normalised if agent_axes else normalised[..., 0]
+        else:
+            advantages = ppo_lib.normalize(advantages)
 
     def flat(x: jax.Array) -> jax.Array:
-        return x.reshape(-1, *x.shape[2:])
+        return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
 
     batch = Batch(
         obs=flat(rollout.obs),
@@ -208,6 +234,8 @@ def make_batch(
         values=flat(rollout.value),
         advantages=flat(advantages),
         targets=flat(targets),
+        alive=flat(rollout.alive),
+        global_state=flat(rollout.global_state),
         extras=jax.tree.map(flat, rollout.extras),
     )
     return value_norm, batch
@@ -231,7 +259,8 @@ def optimise(
         size = batch.advantages.shape[0]
         order = jax.random.permutation(key, size)
         minibatches = jax.tree.map(
-            lambda x: x[order].reshape(ppo.num_minibatches, -1, *x.shape[1:]), batch
+            lambda x: x[order].reshape(ppo.num_minibatches, size // ppo.num_minibatches, *x.shape[1:]),
+            batch,
         )
         return jax.lax.scan(minibatch_step, carry, minibatches)
 
@@ -245,6 +274,23 @@ def update_step(setup: TrainSetup, state: TrainerState) -> tuple[TrainerState, d
     """One PPO update of one seed: collect, estimate, optimise, soft-update the target critic."""
     state, rollout = collect_rollout(setup, state)
     return learn(setup, state, rollout)
+
+
+NONFINITE_QUANTITIES = ("loss", "gradient norm", "parameters")
+"""What `nonfinite_code` k > 0 names: NONFINITE_QUANTITIES[k - 1]."""
+
+
+def nonfinite_code(metrics: dict[str, jax.Array], params: Params) -> jax.Array:
+    """0 if the update's loss, gradient norm and new parameters are all finite; else 1 + the
+    index in `NONFINITE_QUANTITIES` of the first that is not (the loss and gradient norm are
+    means over the update's minibatch steps, so one bad step makes them non-finite)."""
+    params_finite = jnp.all(jnp.stack(
+        [jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(params)]
+    ))
+    finite = jnp.stack([
+        jnp.isfinite(metrics["loss"]), jnp.isfinite(metrics["grad_norm"]), params_finite
+    ])
+    return jnp.where(jnp.all(finite), 0, 1 + jnp.argmin(finite)).astype(jnp.int32)
 
 
 def learn(
@@ -265,6 +311,7 @@ def learn(
         "episodes": jnp.sum(rollout.done),
         "return_sum": jnp.sum(rollout.finished_return),
         "win_sum": jnp.sum(rollout.won & rollout.done),
+        "nonfinite": nonfinite_code(metrics, params),
     }
     state = state.replace(
         params=params, target_params=target_params, opt_state=opt_state,
@@ -274,26 +321,48 @@ def learn(
 
 
 def run_updates(
-    setup: TrainSetup, state: TrainerState, num_updates: int
+    setup: TrainSetup, state: TrainerState, max_updates: int, updates: jax.Array
 ) -> tuple[TrainerState, dict[str, jax.Array]]:
-    """`num_updates` updates in one scan; episode statistics pooled over the whole span."""
-    state, per_update = jax.lax.scan(
-        lambda s, _: update_step(setup, s), state, None, num_updates
-    )
+    """`updates` (≤ `max_updates`, traced) updates in one scan of `max_updates` steps: the
+    steps past `updates` leave the state as it is, so one compiled program also runs a run's
+    shorter last chunk. Episode statistics are pooled over the updates done."""
+
+    def step(state: TrainerState, index: jax.Array) -> tuple[TrainerState, dict[str, jax.Array]]:
+        shapes = jax.eval_shape(lambda s: update_step(setup, s)[1], state)
+        skipped = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+        state, metrics = jax.lax.cond(
+            index < updates, lambda s: update_step(setup, s), lambda s: (s, skipped), state
+        )
+        return state, {**metrics, "performed": index < updates}
+
+    state, per_update = jax.lax.scan(step, state, jnp.arange(max_updates))
     return state, summarise_updates(setup, per_update)
 
 
 def summarise_updates(setup: TrainSetup, per_update: dict[str, jax.Array]) -> dict[str, jax.Array]:
-    """Metrics of updates stacked on a leading axis: losses averaged, episode sums pooled into
-    the mean return and win rate of the episodes that ended in the span (NaN where none did)."""
+    """Metrics of updates stacked on a leading axis: losses averaged over the updates performed
+    (`performed`, all where absent), episode sums pooled into the mean return and win rate of
+    the episodes that ended in the span (NaN where none did). `nonfinite_update` is the index of
+    the first update whose loss, gradient norm or parameters were not finite (-1 if none) and
+    `nonfinite_code` what was (`nonfinite_code`)."""
     per_update = dict(per_update)
+    codes = per_update.pop("nonfinite")
+    performed = per_update.pop("performed", jnp.ones(codes.shape, bool))
     episodes = jnp.sum(per_update.pop("episodes"))
     return_sum = jnp.sum(per_update.pop("return_sum"))
     win_sum = jnp.sum(per_update.pop("win_sum"))
-    metrics = jax.tree.map(jnp.mean, per_update)
+    weights = performed.astype(jnp.float32)
+    metrics = jax.tree.map(
+        lambda x: jnp.sum(jnp.where(performed, x, 0.0)) / jnp.maximum(jnp.sum(weights), 1.0),
+        per_update,
+    )
     metrics["episode_return"] = jnp.where(episodes > 0, return_sum / jnp.maximum(episodes, 1), jnp.nan)
     win_rate = jnp.where(episodes > 0, win_sum / jnp.maximum(episodes, 1), jnp.nan)
     metrics["win_rate"] = win_rate if setup.spec.has_win_rate else jnp.full_like(win_rate, jnp.nan)
+    bad = performed & (codes > 0)
+    first = jnp.argmax(bad)
+    metrics["nonfinite_update"] = jnp.where(jnp.any(bad), first, -1)
+    metrics["nonfinite_code"] = jnp.where(jnp.any(bad), codes[first], 0)
     return metrics
 
 
@@ -354,7 +423,11 @@ class Trainer:
         chunk = config.updates_per_log
         self._init = jax.jit(lambda rng: init_state(self.setup, rng))
         self._chunk = jax.jit(
-            jax.vmap(lambda state: run_updates(self.setup, state, chunk)), donate_argnums=0
+            jax.vmap(
+                lambda state, updates: run_updates(self.setup, state, chunk, updates),
+                in_axes=(0, None),
+            ),
+            donate_argnums=0,
         )
         self._evaluate = jax.jit(
             jax.vmap(
@@ -373,8 +446,14 @@ class Trainer:
         states = [self._init(key) for key in self.seed_keys()]
         return jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
 
-    def train_chunk(self, state: TrainerState) -> tuple[TrainerState, dict[str, np.ndarray]]:
-        state, metrics = self._chunk(state)
+    def train_chunk(
+        self, state: TrainerState, updates: int | None = None
+    ) -> tuple[TrainerState, dict[str, np.ndarray]]:
+        """`updates` (default and at most `updates_per_log`) updates of every seed."""
+        updates = self.config.updates_per_log if updates is None else updates
+        if not 0 < updates <= self.config.updates_per_log:
+            raise ValueError(f"updates must be in 1..{self.config.updates_per_log}, got {updates}")
+        state, metrics = self._chunk(state, jnp.asarray(updates, jnp.int32))
         numbers = {key: np.asarray(value) for key, value in metrics.items()}
         numbers["env_steps"] = np.full(self.config.seeds, self.env_steps(state))
         return state, numbers
@@ -395,12 +474,31 @@ class Trainer:
         return restore_state(template, self.config.seeds, data)
 
 
+ADDED_TIMESTEP_FIELDS = {"alive": True, "global_state": 0.0}
+"""`TimeStep` fields newer than the first checkpoint format, with the value a checkpoint
+without them gets: every agent active, a zero global state. They describe only the
+observation in progress when the checkpoint was written, so a resumed run's first step at most
+sees them wrong; everything learned is restored exactly."""
+
+
+def fill_added_timestep_fields(raw: Any, template: TrainerState) -> None:
+    """Add `ADDED_TIMESTEP_FIELDS` to a restored state dict that lacks them (in place)."""
+    if not isinstance(raw, dict) or not isinstance(raw.get("timestep"), dict):
+        return
+    for name, value in ADDED_TIMESTEP_FIELDS.items():
+        if name not in raw["timestep"]:
+            shape = getattr(template.timestep, name)
+            raw["timestep"][name] = np.full(shape.shape, value, shape.dtype)
+
+
 def restore_state(template: TrainerState, seeds: int, data: bytes) -> TrainerState:
     """The all-seeds state serialised in `data`, checked against one seed's `template` (shapes
     and dtypes, e.g. from `jax.eval_shape`)."""
     template = jax.tree.map(lambda x: jax.ShapeDtypeStruct((seeds, *x.shape), x.dtype), template)
     try:
-        restored = flax.serialization.from_bytes(template, data)
+        raw = flax.serialization.msgpack_restore(data)
+        fill_added_timestep_fields(raw, template)
+        restored = flax.serialization.from_state_dict(template, raw)
     except Exception as error:  # msgpack and flax raise many types for bad bytes
         raise CmatError(f"corrupt or incompatible checkpoint ({type(error).__name__})") from None
     expected = jax.tree.map(lambda x: (x.shape, x.dtype), template)

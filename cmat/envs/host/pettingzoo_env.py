@@ -15,6 +15,10 @@ How a ParallelEnv maps onto the protocol (README, "Host environments"):
   them; otherwise every action is available.
 - Team reward: the mean of the rewards of the agents that got one this step (a shared reward
   passes through unchanged; a sum would scale with the team size).
+- Global state: `env.state()` flattened, where the env implements it (its size from
+  `state_space` or one probing reset); otherwise none, and centralised critics read the
+  concatenated observations. MaMuJoCo's `state()` is the single-agent environment's observation.
+- Active agents (`alive`): the agents still in the episode.
 - Done: every agent terminated or truncated (or `env.agents` is empty), or `max_episode_steps`
   transitions elapsed. Won: any agent's info says `"won": True` at the end; the win rate is
   reported only where the env's `metadata["has_win_rate"]` is true.
@@ -64,6 +68,23 @@ def make_pettingzoo_env(env_id: str, target: str, **kwargs: Any) -> PettingZooEn
     except Exception as error:  # the user's factory: any error is a bad id or bad options
         raise CmatError(f"{env_id}: the factory raised {type(error).__name__}: {error}") from None
     return PettingZooEnv(env, env_id)
+
+
+def probe_state_dim(env: Any, env_id: str) -> int:
+    """The size of `env.state()`: from `state_space` where the env declares one, else from one
+    call after a probing reset; 0 where `state()` is not implemented."""
+    import gymnasium.spaces as spaces
+
+    space = getattr(env, "state_space", None)
+    if isinstance(space, spaces.Space):
+        return int(spaces.flatdim(space))
+    if not callable(getattr(env, "state", None)):
+        return 0
+    try:
+        env.reset(seed=None)
+        return int(np.asarray(env.state(), np.float32).size)
+    except (NotImplementedError, AttributeError):
+        return 0
 
 
 class PettingZooEnv(AutoReset):
@@ -128,6 +149,7 @@ class PettingZooEnv(AutoReset):
             has_win_rate=bool(metadata.get("has_win_rate", False)),
             action_low=low,
             action_high=high,
+            state_dim=probe_state_dim(env, env_id),
         )
         self._alive: set[str] = set()
         self._steps = 0
@@ -164,6 +186,21 @@ class PettingZooEnv(AutoReset):
                   if isinstance(info, dict))
         obs_array, mask = self._encode(obs, infos or {})
         return obs_array, mask, reward, done, won
+
+    def _global_state(self) -> np.ndarray:
+        if self.spec.state_dim == 0:
+            return np.zeros(0, np.float32)
+        state = np.asarray(self.env.state(), np.float32).reshape(-1)
+        if state.size != self.spec.state_dim:
+            raise CmatError(
+                f"{self.spec.env_id}: state() returned {state.size} values, expected "
+                f"{self.spec.state_dim}"
+            )
+        return state
+
+    def _active(self) -> np.ndarray:
+        """The agents still in the episode (`possible_agents` order)."""
+        return np.array([agent in self._alive for agent in self.agents], bool)
 
     def _env_action(self, index: int, action: np.ndarray) -> Any:
         if self.spec.discrete:

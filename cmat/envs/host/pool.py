@@ -37,6 +37,8 @@ def stack(timesteps: list[HostTimeStep]) -> HostTimeStep:
         reward=np.asarray([t.reward for t in timesteps], np.float32),
         done=np.asarray([t.done for t in timesteps], bool),
         won=np.asarray([t.won for t in timesteps], bool),
+        alive=np.stack([t.alive for t in timesteps]).astype(bool, copy=False),
+        global_state=np.stack([t.global_state for t in timesteps]).astype(np.float32, copy=False),
     )
 
 

@@ -29,6 +29,10 @@ class HostTimeStep(NamedTuple):
     """The transition just taken ended the episode (terminal, time limit or a fault)."""
     won: bool
     """The episode that just ended was won (False where undefined or not done)."""
+    alive: np.ndarray
+    """[n_agents] bool: agents active in `obs` (False: left the episode, or not in it yet)."""
+    global_state: np.ndarray
+    """[state_dim] float32 global state; shape [0] (host environments provide none yet)."""
 
 
 class HostEnv(Protocol):
@@ -54,20 +58,30 @@ class AutoReset:
     def reset(self, seed: int | None = None) -> HostTimeStep:
         """Start an episode (seeded where `seed` is given)."""
         obs, mask = self._reset(seed)
-        return HostTimeStep(obs, mask, 0.0, False, False)
+        return HostTimeStep(obs, mask, 0.0, False, False, self._active(), self._global_state())
 
     def step(self, actions: np.ndarray) -> HostTimeStep:
         """Step; when the episode ends, the next one starts and its first observation returns."""
         obs, mask, reward, done, won = self._step(actions)
         if done:
             obs, mask = self._reset(None)
-        return HostTimeStep(obs, mask, float(reward), bool(done), bool(won and done))
+        return HostTimeStep(
+            obs, mask, float(reward), bool(done), bool(won and done), self._active(),
+            self._global_state(),
+        )
 
     def close(self) -> None:
         """Release the simulator."""
 
     def _reset(self, seed: int | None) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
+
+    def _active(self) -> np.ndarray:
+        """[n_agents] bool: the agents active in the current observation (all, by default)."""
+        return np.ones(self.spec.num_agents, bool)
+
+    def _global_state(self) -> np.ndarray:
+        return np.zeros(self.spec.state_dim, np.float32)
 
     def _step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, bool, bool]:
         raise NotImplementedError
