@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 from cmat.config import FINETUNE_MODES, TrainConfig, load_config, resolve_iterations, validate
 from cmat.errors import CmatError
-from cmat.experiments.plots import plot_runs
+from cmat.experiments.plots import plot_diagnostics, plot_runs
 from cmat.rundir import RunDir
 from cmat.runners.loop import run_training
 
@@ -39,6 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--steps", type=int, help="environment steps per seed (total_steps)")
     train.add_argument("--seeds", type=int, help="independent seeds trained at once")
     train.add_argument("--config", type=Path, metavar="FILE.yaml", help="YAML config file")
+    train.add_argument(
+        "--preset", metavar="NAME",
+        help="a named setting of the algorithm, applied before --config and --set: 'paper' is "
+             "the paper's exact settings (default: the algorithm's own defaults)",
+    )
     train.add_argument(
         "--set", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
         help="config overrides, e.g. ppo.lr=1e-4 num_envs=8 (applied after --config)",
@@ -64,6 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
     plot = commands.add_parser("plot", help="evaluation curves of run directories")
     plot.add_argument("runs", type=Path, nargs="+", metavar="DIR", help="run directories")
     plot.add_argument("--out", type=Path, required=True, metavar="FILE.png", help="image to write")
+    plot.add_argument(
+        "--diagnostics", action="store_true",
+        help="draw the per-update training diagnostics instead (clip fraction and approximate "
+             "KL of the joint and per-agent ratios, explained variance, entropy per agent, "
+             "gradient norm per block)",
+    )
     plot.set_defaults(handler=plot_command)
 
     finetune = commands.add_parser(
@@ -131,7 +142,7 @@ def fail(message: str) -> int:
 def train_command(args: argparse.Namespace) -> None:
     if args.resume is not None:
         if any(value is not None for value in (args.env, args.algo, args.seeds, args.config,
-                                                args.out)) or args.set:
+                                                args.out, args.preset)) or args.set:
             raise CmatError("--resume takes no other option than --steps")
         run_dir = RunDir.open(args.resume)
         config = run_dir.config()
@@ -139,7 +150,8 @@ def train_command(args: argparse.Namespace) -> None:
             config = validate(dataclasses.replace(config, total_steps=args.steps))
         trainer = build_trainer(config)
     else:
-        flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds}
+        flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds,
+                 "preset": args.preset}
         explicit = [f"{key}={value}" for key, value in flags.items() if value is not None]
         config = load_config(args.config, [*args.set, *explicit])
         trainer = build_trainer(config)
@@ -237,7 +249,7 @@ def experiment_command(args: argparse.Namespace) -> None:
 
 
 def plot_command(args: argparse.Namespace) -> None:
-    plot_runs(args.runs, args.out)
+    (plot_diagnostics if args.diagnostics else plot_runs)(args.runs, args.out)
     print(f"wrote {args.out}")
 
 

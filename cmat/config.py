@@ -23,6 +23,9 @@ CONSENSUS_POLICIES = ("deterministic", "categorical", "gaussian")
 ITERATION_RULES = {"n": (1, 1), "n/2": (1, 2), "2n": (2, 1)}
 """m given relative to the number of agents n: name -> (numerator, denominator), m = ⌊n·a/b⌋."""
 FINETUNE_MODES = ("consensus", "action")
+JOINT_CLIPS = ("joint", "per_agent")
+ENTROPY_REDUCTIONS = ("mean", "sum")
+JOINT_RATIO_ALGORITHMS = ("cmat", "triple_bert")
 ALGORITHMS = ("cmat", "mat", "pmat", "triple_bert", "happo", "mappo")
 
 @dataclass(frozen=True)
@@ -105,6 +108,19 @@ class PPOConfig:
     huber_delta: float = 10.0
     clipped_value_loss: bool = True
     normalize_advantages: bool = True
+    joint_clip: str = "joint"
+    """CMAT and Triple-BERT: 'joint' clips the joint ratio R = Π_i r_i to [1−ε, 1+ε] (paper
+    eq. cmat); 'per_agent' clips it to [(1−ε)^k, (1+ε)^k] for the k active agents of the
+    sample, i.e. holds the per-agent geometric mean R^(1/k) to [1−ε, 1+ε], so the per-agent trust
+    region does not shrink as 1/n."""
+    entropy_reduction: str = "mean"
+    """CMAT and Triple-BERT: 'mean' over agents (the paper, as MAT) or 'sum' (the entropy of the
+    joint policy Π_i π_i, which single-agent PPO on the joint action would regularise)."""
+    target_kl: float | None = None
+    """KL early stop (well-known PPO practice, e.g. CleanRL): after an epoch whose mean
+    approximate KL (of the ratio the algorithm clips, measured on each minibatch before its
+    step) exceeds this, the update's remaining epochs are skipped. None: every epoch runs (the
+    paper, the references)."""
     consensus_ent_coef: float = 0.01
     """Stochastic consensus only: weight of the consensus policy's entropy bonus."""
     order_loss_coef: float = 1.0
@@ -145,6 +161,10 @@ class TrainConfig:
     Critic-MLP and Actor-MLP. The rest is frozen by an optimizer mask (`cmat finetune`)."""
     finetune_from: str | None = None
     """The run directory a fine-tuning run started from (recorded by `cmat finetune`)."""
+    preset: str | None = None
+    """A named set of values the algorithm declares (its class's `presets`), applied over its
+    reference defaults and under `--config` / `--set`: 'paper' is the paper's exact settings
+    (`cmat train --preset paper`). None: the algorithm's defaults."""
     network: NetworkConfig = field(default_factory=NetworkConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
 
@@ -214,6 +234,17 @@ def validate(config: TrainConfig) -> TrainConfig:
         (config.steps_per_update % ppo.num_minibatches == 0,
          f"num_envs * rollout_length ({config.steps_per_update}) must be divisible by "
          f"ppo.num_minibatches ({ppo.num_minibatches})"),
+        (ppo.joint_clip in JOINT_CLIPS,
+         f"ppo.joint_clip must be one of {', '.join(JOINT_CLIPS)}, got {ppo.joint_clip!r}"),
+        (ppo.entropy_reduction in ENTROPY_REDUCTIONS,
+         f"ppo.entropy_reduction must be one of {', '.join(ENTROPY_REDUCTIONS)}, "
+         f"got {ppo.entropy_reduction!r}"),
+        ((ppo.joint_clip == "joint" and ppo.entropy_reduction == "mean")
+         or config.algo in JOINT_RATIO_ALGORITHMS,
+         f"ppo.joint_clip and ppo.entropy_reduction apply to the joint-ratio algorithms "
+         f"({', '.join(JOINT_RATIO_ALGORITHMS)}), not {config.algo!r}"),
+        (ppo.target_kl is None or (math.isfinite(ppo.target_kl) and ppo.target_kl > 0),
+         f"ppo.target_kl must be > 0 or null, got {ppo.target_kl}"),
         (not ppo.per_agent_gae or config.algo in ("mat", "pmat"),
          f"ppo.per_agent_gae needs per-agent values (mat, pmat); algo {config.algo!r} has a "
          f"team value"),
@@ -305,11 +336,18 @@ def load_config(
                 raise CmatError(f"override {item!r} must look like key=value")
         if overrides:
             layers.append(OmegaConf.from_dotlist(list(overrides)))
-        algo = OmegaConf.merge(*layers).algo
+        merged = OmegaConf.merge(*layers)
+        algo, preset = merged.algo, merged.preset
         if base is None and algo in ALGORITHMS:
-            from cmat.algorithms import reference_defaults
+            from cmat.algorithms import algorithm_presets, reference_defaults
 
             layers.insert(1, OmegaConf.create(reference_defaults(algo)))
+            if preset is not None:
+                presets = algorithm_presets(algo)
+                if preset not in presets:
+                    raise CmatError(f"unknown preset {preset!r} for {algo}; available: "
+                                    f"{', '.join(presets) or 'none'}")
+                layers.insert(2, OmegaConf.create(presets[preset]))
         config = OmegaConf.to_object(OmegaConf.merge(*layers))
     except FileNotFoundError:
         raise CmatError(f"config file not found: {yaml_file}") from None

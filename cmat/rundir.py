@@ -33,7 +33,17 @@ from cmat.config import TrainConfig, from_yaml, to_yaml
 from cmat.errors import CmatError
 
 LOSS_COLUMNS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac")
-COLUMNS = ("kind", "seed", "env_steps", "episode_return", "win_rate", *LOSS_COLUMNS)
+DIAGNOSTIC_COLUMNS = (
+    "joint_approx_kl", "joint_clip_frac", "agent_approx_kl", "agent_clip_frac",
+    "explained_variance",
+)
+"""Per-update diagnostics of every algorithm (`cmat.algorithms.ppo.policy_diagnostics`)."""
+COLUMNS = (
+    "kind", "seed", "env_steps", "episode_return", "win_rate", *LOSS_COLUMNS, *DIAGNOSTIC_COLUMNS
+)
+PER_RUN_PREFIXES = ("entropy_agent_", "grad_norm_", "epochs_run")
+"""Diagnostics whose names depend on the run (one per agent, one per parameter block): their
+columns follow COLUMNS in the order the first rows give them."""
 CHECKPOINT_MAGIC = b"CMAT-CHECKPOINT 1\n"
 
 Row = Mapping[str, str | int | float]
@@ -123,16 +133,29 @@ class RunDir:
 
     def append_metrics(self, rows: list[Row]) -> None:
         """Append rows (NaN as `nan`, missing columns empty, other keys ignored) and sync them to
-        disk."""
+        disk. A new file's columns are COLUMNS and the rows' per-run diagnostics
+        (`PER_RUN_PREFIXES`); later rows follow the header already written."""
         buffer = io.StringIO()
-        writer = csv.DictWriter(buffer, COLUMNS, extrasaction="ignore", lineterminator="\n")
-        if not self.metrics_path.exists() or self.metrics_path.stat().st_size == 0:
+        header = self.metrics_header()
+        columns = header or [
+            *COLUMNS,
+            *dict.fromkeys(key for row in rows for key in row if key.startswith(PER_RUN_PREFIXES)),
+        ]
+        writer = csv.DictWriter(buffer, columns, extrasaction="ignore", lineterminator="\n")
+        if not header:
             writer.writeheader()
         writer.writerows({key: csv_value(value) for key, value in row.items()} for row in rows)
         with self.metrics_path.open("a") as file:
             file.write(buffer.getvalue())
             file.flush()
             os.fsync(file.fileno())
+
+    def metrics_header(self) -> list[str]:
+        """The columns of an existing metrics.csv (empty if there is none yet)."""
+        if not self.metrics_path.is_file() or self.metrics_path.stat().st_size == 0:
+            return []
+        with self.metrics_path.open(newline="") as file:
+            return next(csv.reader(file), [])
 
     def read_metrics(self) -> list[dict[str, str]]:
         if not self.metrics_path.is_file():

@@ -39,6 +39,11 @@ def reference_defaults(name: str) -> dict[str, Any]:
     return algorithm_class(name).reference_defaults
 
 
+def algorithm_presets(name: str) -> dict[str, dict[str, Any]]:
+    """The named algorithm's presets (its class's `presets`: name -> config values)."""
+    return algorithm_class(name).presets
+
+
 def build_algorithm(
     name: str, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
 ) -> Algorithm:

@@ -71,6 +71,9 @@ class Algorithm(Protocol):
     dataclass defaults (the reference MAT's SMAC settings); `cmat.config.load_config` puts them
     between those defaults and a YAML file."""
 
+    presets: ClassVar[dict[str, dict[str, Any]]]
+    """Named sets of config values (`TrainConfig.preset`); 'paper' is the paper's setting."""
+
     @classmethod
     def build(cls, network: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = ...) -> Any: ...
 

@@ -22,7 +22,10 @@ import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.distributions import action_distribution, greedy_action
-from cmat.algorithms.ppo import clipped_surrogate_loss, joint_log_ratio, masked_mean, value_loss
+from cmat.algorithms.ppo import (
+    clipped_surrogate_loss, joint_clip_range, joint_log_ratio, masked_mean, policy_diagnostics,
+    value_loss,
+)
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.cmat import CMATNetwork, PolicyOutput
@@ -37,6 +40,29 @@ class LatentSample(NamedTuple):
     """[] log π_c(latent | O) under the collecting parameters."""
 
 
+PAPER_SETTINGS: dict[str, Any] = {
+    "num_envs": 8,
+    "rollout_length": 100,
+    "ppo": {
+        "lr": 5e-4, "adam_eps": 1e-5, "epochs": 15, "num_minibatches": 1, "clip_eps": 0.05,
+        "ent_coef": 0.01, "value_coef": 1.0, "max_grad_norm": 10.0, "gamma": 0.99,
+        "gae_lambda": 0.95, "target_tau": 0.1, "value_norm": True, "huber_loss": True,
+        "huber_delta": 10.0, "clipped_value_loss": True, "normalize_advantages": True,
+        "active_masks": False, "joint_clip": "joint", "entropy_reduction": "mean",
+        "target_kl": None,
+    },
+    "network": {
+        "n_embd": 64, "n_head": 1, "n_block": 1, "consensus_iterations": "n",
+        "consensus_source": "mixture", "consensus_policy": "deterministic", "init_gain": 0.01,
+        "log_std_init": 1.0,
+    },
+}
+"""The paper's settings (Experiments supplement): the reference MAT's SMAC hyper-parameters
+(shared/reference/README.md) with 8 rollout threads ("due to hardware limitations"), m = n, the
+mixture consensus, the joint ratio clipped to [1 − ε, 1 + ε] (eq. cmat), entropy averaged over
+agents, and the target critic (τ not given in the paper: 0.1, README)."""
+
+
 @dataclass(frozen=True)
 class CMAT:
     network: CMATNetwork
@@ -44,6 +70,8 @@ class CMAT:
     reference_defaults: ClassVar[dict[str, Any]] = {}
     """The paper trains CMAT with the reference MAT's settings (the dataclass defaults) and its
     soft-updated target critic (`ppo.target_tau` 0.1)."""
+
+    presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": PAPER_SETTINGS}
 
     @classmethod
     def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "CMAT":
@@ -108,12 +136,24 @@ class CMAT:
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
         """Clipped surrogate on the joint ratio, mean per-agent entropy (over active agents with
         `ppo.active_masks`), team value loss; with a stochastic consensus, π_c's entropy gets its
-        own bonus."""
+        own bonus.
+
+        Named departures from the paper (PPOConfig): `joint_clip=per_agent` clips R to
+        [(1−ε)^k, (1+ε)^k] for k active agents instead of [1−ε, 1+ε] (eq. cmat);
+        `entropy_reduction=sum` weights the entropy of the joint policy Σ_i H(π_i) instead of
+        its mean over agents (n times the mean without active masks)."""
         log_ratio, output, distribution = self.log_ratio(params, batch)
+        clip_range = None
+        if ppo.joint_clip == "per_agent":
+            alive = batch.alive if batch.alive is not None else jnp.ones(batch.log_probs.shape)
+            clip_range = joint_clip_range(ppo.clip_eps, jnp.sum(alive, axis=-1))
         policy_loss, diagnostics = clipped_surrogate_loss(
-            log_ratio, batch.advantages, ppo.clip_eps
+            log_ratio, batch.advantages, ppo.clip_eps, clip_range=clip_range
         )
-        entropy = masked_mean(distribution.entropy(), active_mask(batch, ppo))
+        entropies = distribution.entropy()
+        entropy = masked_mean(entropies, active_mask(batch, ppo))
+        if ppo.entropy_reduction == "sum":
+            entropy = entropy * entropies.shape[-1]
         critic_loss = value_loss(
             output.value, batch.values, batch.targets, ppo.clip_eps,
             ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,
@@ -124,6 +164,10 @@ class CMAT:
             "value_loss": critic_loss,
             "entropy": entropy,
             **diagnostics,
+            **policy_diagnostics(
+                distribution.log_prob(batch.actions) - batch.log_probs, log_ratio, ppo.clip_eps,
+                entropies, active_mask(batch, ppo),
+            ),
         }
         if self.stochastic:
             consensus_entropy = jnp.mean(output.latent_entropy)

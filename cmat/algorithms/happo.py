@@ -27,7 +27,7 @@ import optax
 from cmat.algorithms.base import Batch, Params, active_mask
 from cmat.algorithms.distributions import action_distribution
 from cmat.algorithms.mappo import MAPPO
-from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean
+from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean, policy_diagnostics
 from cmat.config import PPOConfig
 from cmat.runners import trainer
 
@@ -168,7 +168,10 @@ class HAPPO(MAPPO):
         self, setup: trainer.TrainSetup, params: Params, opt_state: Any, batch: Batch,
         rng: jax.Array,
     ) -> tuple[Params, Any, dict[str, jax.Array]]:
-        """The sequential update (module docstring): agents in a random order, then the critic."""
+        """The sequential update (module docstring): agents in a random order, then the critic.
+
+        The joint and per-agent ratio diagnostics compare the final actors with the collecting
+        ones; `grad_norm_actor` is the mean over the agent phases."""
         keys = jax.random.split(rng, self.num_agents + 2)
         order = jax.random.permutation(keys[0], self.num_agents)
         everywhere = jax.tree.map(lambda _: jnp.asarray(True), params)
@@ -196,7 +199,7 @@ class HAPPO(MAPPO):
             )
             return (params, state, new_log_probs), metrics
 
-        (params, state, _), agent_metrics = jax.lax.scan(
+        (params, state, new_log_probs), agent_metrics = jax.lax.scan(
             update_agent, (params, opt_state, batch.log_probs), (order, keys[2:])
         )
         params, state, critic_metrics = train_phase(
@@ -204,10 +207,17 @@ class HAPPO(MAPPO):
         )
         metrics = jax.tree.map(jnp.mean, agent_metrics)
         phases = self.num_agents + 1
+        agent_log_ratio = new_log_probs - batch.log_probs
+        entropies = self.distribution(params, batch.obs, batch.action_mask).entropy()
         return params, state, {
             **metrics,
+            **policy_diagnostics(
+                agent_log_ratio, jnp.sum(agent_log_ratio, axis=-1), setup.config.ppo.clip_eps,
+                entropies, active_mask(batch, setup.config.ppo),
+            ),
             "value_loss": critic_metrics["value_loss"],
             "loss": metrics["loss"] + critic_metrics["loss"],
             "grad_norm": (jnp.sum(agent_metrics["grad_norm"]) + critic_metrics["grad_norm"])
             / phases,
+            "grad_norm_critic": critic_metrics["grad_norm_critic"],
         }

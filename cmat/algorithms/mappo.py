@@ -21,7 +21,9 @@ import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.distributions import action_distribution, greedy_action
-from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean, value_loss
+from cmat.algorithms.ppo import (
+    clipped_surrogate_loss, masked_mean, policy_diagnostics, value_loss,
+)
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.mlp import MLPActor, MLPCritic
@@ -35,6 +37,10 @@ class MAPPO:
     discrete: bool
     state_dim: int = 0
     """The environment's global state size; 0: the critic reads the concatenated observations."""
+
+    presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
+    """'paper': the paper's comparison setting, the reference settings with 8 rollout
+    threads."""
 
     reference_defaults: ClassVar[dict[str, Any]] = {
         "ppo": {"clip_eps": 0.2, "epochs": 5, "target_tau": 1.0, "active_masks": True},
@@ -123,7 +129,8 @@ class MAPPO:
         policy_loss, diagnostics = clipped_surrogate_loss(
             log_ratio, batch.advantages[:, None], ppo.clip_eps, mask
         )
-        entropy = masked_mean(distribution.entropy(), mask)
+        entropies = distribution.entropy()
+        entropy = masked_mean(entropies, mask)
         critic_loss = self.critic_loss(params, batch, ppo)
         total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
         return total, {
@@ -131,4 +138,7 @@ class MAPPO:
             "value_loss": critic_loss,
             "entropy": entropy,
             **diagnostics,
+            **policy_diagnostics(
+                log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, mask
+            ),
         }

@@ -23,7 +23,9 @@ import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.distributions import action_distribution
-from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean, value_loss
+from cmat.algorithms.ppo import (
+    clipped_surrogate_loss, masked_mean, policy_diagnostics, value_loss,
+)
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.mat import MATNetwork, MATOutput
@@ -34,6 +36,10 @@ class MAT:
     network: MATNetwork
     per_agent_gae: bool = False
     """Values are per agent ([n], `ppo.per_agent_gae`), else their team mean ([])."""
+
+    presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
+    """'paper': the paper's comparison setting, the reference settings with 8 rollout
+    threads."""
 
     reference_defaults: ClassVar[dict[str, Any]] = {
         "ppo": {"target_tau": 1.0, "active_masks": True, "per_agent_gae": True},
@@ -127,7 +133,8 @@ class MAT:
         policy_loss, diagnostics = clipped_surrogate_loss(
             log_ratio, advantages, ppo.clip_eps, mask
         )
-        entropy = masked_mean(distribution.entropy(), mask)
+        entropies = distribution.entropy()
+        entropy = masked_mean(entropies, mask)
         critic_loss = value_loss(
             output.agent_values, old_agent_values, per_agent(batch.targets, log_ratio.shape),
             ppo.clip_eps, ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss, mask,
@@ -138,6 +145,9 @@ class MAT:
             "value_loss": critic_loss,
             "entropy": entropy,
             **diagnostics,
+            **policy_diagnostics(
+                log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, mask
+            ),
         }
         return total, metrics, output
 

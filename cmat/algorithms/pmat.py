@@ -55,6 +55,7 @@ class PMAT:
 
     reference_defaults: ClassVar[dict[str, Any]] = MAT.reference_defaults
     """PMAT is built on the reference MAT code and trains as it does."""
+    presets: ClassVar[dict[str, dict[str, Any]]] = MAT.presets
 
     @classmethod
     def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "PMAT":

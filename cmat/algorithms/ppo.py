@@ -5,7 +5,7 @@ Each is a plain function of arrays, unit-tested against a plain reference.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -68,22 +68,90 @@ def masked_mean(x: jax.Array, mask: jax.Array | None = None) -> jax.Array:
 
 
 def clipped_surrogate_loss(
-    log_ratio: jax.Array, advantages: jax.Array, clip_eps: float, mask: jax.Array | None = None
+    log_ratio: jax.Array,
+    advantages: jax.Array,
+    clip_eps: float,
+    mask: jax.Array | None = None,
+    clip_range: tuple[jax.Array, jax.Array] | None = None,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """−E[min(R·A, clip(R, 1−ε, 1+ε)·A)] (paper eq. cmat), with PPO diagnostics.
 
     The mean runs over the entries where `mask` holds (active masks; every entry without one).
-    log R is clamped to ±`LOG_RATIO_BOUND` before `exp`."""
+    log R is clamped to ±`LOG_RATIO_BOUND` before `exp`. `clip_range` (lower, upper), arrays
+    broadcast to R, replaces [1−ε, 1+ε] (`joint_clip_range`)."""
     log_ratio = jnp.clip(log_ratio, -LOG_RATIO_BOUND, LOG_RATIO_BOUND)
     ratio = jnp.exp(log_ratio)
     unclipped = ratio * advantages
-    clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
+    if clip_range is None:
+        clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
+        outside = jnp.abs(ratio - 1.0) > clip_eps
+    else:
+        lower, upper = clip_range
+        clipped = jnp.clip(ratio, lower, upper) * advantages
+        outside = (ratio < lower) | (ratio > upper)
     loss = -masked_mean(jnp.minimum(unclipped, clipped), mask)
     diagnostics = {
         "approx_kl": masked_mean((ratio - 1.0) - log_ratio, mask),
-        "clip_frac": masked_mean((jnp.abs(ratio - 1.0) > clip_eps).astype(jnp.float32), mask),
+        "clip_frac": masked_mean(outside.astype(jnp.float32), mask),
     }
     return loss, diagnostics
+
+
+def joint_clip_range(clip_eps: float, active_agents: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """[(1−ε)^k, (1+ε)^k] for k active agents per sample [B]: the joint ratio's range when each
+    agent's share of it, the geometric mean R^(1/k), is held to [1−ε, 1+ε]
+    (`ppo.joint_clip=per_agent`). With k = 1 it is the paper's [1−ε, 1+ε]."""
+    k = active_agents.astype(jnp.float32)
+    return (1.0 - clip_eps) ** k, (1.0 + clip_eps) ** k
+
+
+def policy_diagnostics(
+    agent_log_ratio: jax.Array,
+    joint_log_ratio: jax.Array,
+    clip_eps: float,
+    entropy: jax.Array,
+    mask: jax.Array | None = None,
+) -> dict[str, jax.Array]:
+    """Trust-region diagnostics of one minibatch, for every algorithm alike.
+
+    agent_log_ratio [B, n]: log π_i − log π_i,old; joint_log_ratio [B]: log of the ratio CMAT
+    clips (Σ_i of the above, plus a sampled consensus's term); entropy [B, n]. Returns the
+    approximate KL ((r − 1) − log r, Schulman's k3 estimator) and the clip fraction
+    (|r − 1| > ε) of the joint ratio over samples and of the per-agent ratios over the active
+    entries, and each agent's mean entropy (`entropy_agent_i`)."""
+    joint = jnp.exp(jnp.clip(joint_log_ratio, -LOG_RATIO_BOUND, LOG_RATIO_BOUND))
+    agent = jnp.exp(jnp.clip(agent_log_ratio, -LOG_RATIO_BOUND, LOG_RATIO_BOUND))
+    diagnostics = {
+        "joint_approx_kl": jnp.mean((joint - 1.0) - jnp.log(joint)),
+        "joint_clip_frac": jnp.mean((jnp.abs(joint - 1.0) > clip_eps).astype(jnp.float32)),
+        "agent_approx_kl": masked_mean((agent - 1.0) - jnp.log(agent), mask),
+        "agent_clip_frac": masked_mean(
+            (jnp.abs(agent - 1.0) > clip_eps).astype(jnp.float32), mask
+        ),
+    }
+    per_agent = jnp.mean(entropy, axis=0)
+    for index in range(per_agent.shape[0]):
+        diagnostics[f"entropy_agent_{index}"] = per_agent[index]
+    return diagnostics
+
+
+def explained_variance(predictions: jax.Array, targets: jax.Array) -> jax.Array:
+    """1 − Var(targets − predictions) / Var(targets) over all entries; NaN where the targets
+    do not vary."""
+    variance = jnp.var(targets)
+    return jnp.where(variance > 0, 1.0 - jnp.var(targets - predictions) / variance, jnp.nan)
+
+
+def block_grad_norms(grads: Any) -> dict[str, jax.Array]:
+    """The global norm of the gradient of each top-level parameter block (`grad_norm_NAME`):
+    Flax's `params` collection levels are skipped, so CMAT's blocks are encoder,
+    critic_compressor, critic_mlp, decoder, actor_compressor, actor_mlp; MAPPO's actor and
+    critic."""
+    while isinstance(grads, dict) and set(grads) == {"params"}:
+        grads = grads["params"]
+    if not isinstance(grads, dict):
+        return {}
+    return {f"grad_norm_{name}": optax.tree.norm(block) for name, block in grads.items()}
 
 
 def value_loss(

@@ -14,11 +14,12 @@ from cmat.rundir import RunDir
 Curve = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def eval_curve(rows: list[dict[str, str]], column: str) -> Curve | None:
-    """(env_steps, mean, std) over seeds of an eval column; None where it is never defined."""
+def eval_curve(rows: list[dict[str, str]], column: str, kind: str = "eval") -> Curve | None:
+    """(env_steps, mean, std) over seeds of a column of the `kind` rows (eval or train); None
+    where it is never defined."""
     by_step: dict[int, list[float]] = {}
     for row in rows:
-        if row["kind"] == "eval" and row[column] != "":
+        if row["kind"] == kind and row.get(column, "") != "":
             value = float(row[column])
             if not math.isnan(value):
                 by_step.setdefault(int(row["env_steps"]), []).append(value)
@@ -54,5 +55,50 @@ def plot_runs(run_dirs: list[Path], out: Path) -> None:
         axes.set_ylabel(f"eval {name.replace('_', ' ')}")
         axes.grid(alpha=0.3)
         axes.legend(fontsize="small")
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out, dpi=100)
+
+
+DIAGNOSTIC_PANELS = (
+    ("clip fraction", ("joint_clip_frac", "agent_clip_frac")),
+    ("approximate KL", ("joint_approx_kl", "agent_approx_kl")),
+    ("explained variance", ("explained_variance",)),
+    ("entropy (mean over agents)", ("entropy",)),
+    ("entropy per agent", ("entropy_agent_",)),
+    ("gradient norm per block", ("grad_norm_",)),
+)
+"""Panels of `plot_diagnostics`: title and the train columns drawn (a trailing _ is a prefix)."""
+
+
+def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
+    """Per-update training diagnostics of run directories (mean over seeds, ±1 std shaded):
+    joint and per-agent clip fraction and approximate KL, explained variance of the value,
+    entropy (mean and per agent) and the gradient norm of each parameter block."""
+    runs = []
+    for path in run_dirs:
+        run = RunDir.open(path)
+        runs.append((f"{run.config().algo} ({run.path.resolve().name})", run.read_metrics()))
+    figure = Figure(figsize=(18, 8), layout="constrained")
+    all_axes = figure.subplots(2, 3).reshape(-1)
+    drawn = 0
+    for axes, (title, wanted) in zip(all_axes, DIAGNOSTIC_PANELS):
+        for label, rows in runs:
+            columns = list(rows[0]) if rows else []
+            for column in [c for c in columns for w in wanted
+                           if (c.startswith(w) if w.endswith("_") else c == w)]:
+                curve = eval_curve(rows, column, kind="train")
+                if curve is None:
+                    continue
+                steps, mean, std = curve
+                (line,) = axes.plot(steps, mean, label=f"{label} {column}")
+                axes.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+                drawn += 1
+        axes.set_title(title)
+        axes.set_xlabel("env steps per seed")
+        axes.grid(alpha=0.3)
+        if axes.lines:
+            axes.legend(fontsize="x-small")
+    if drawn == 0:
+        raise CmatError("no training diagnostics in " + ", ".join(str(p) for p in run_dirs))
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(out, dpi=100)

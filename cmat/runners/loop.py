@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from cmat.errors import CmatError
 from cmat.experiments.plots import plot_runs
-from cmat.rundir import Row, RunDir
+from cmat.rundir import DIAGNOSTIC_COLUMNS, PER_RUN_PREFIXES, Row, RunDir
 
 if TYPE_CHECKING:
     from cmat.runners.trainer import Trainer, TrainerState
@@ -126,7 +126,11 @@ def log_scalars(writer: SummaryWriter, rows: list[Row], step: int, steps_per_sec
         for key, value in row.items():
             if key in ("kind", "seed", "env_steps") or math.isnan(float(value)):
                 continue
-            namespace = row["kind"] if key in RESULT_KEYS else "losses"
+            namespace = (
+                row["kind"] if key in RESULT_KEYS
+                else "diagnostics" if key in DIAGNOSTIC_COLUMNS or key.startswith(PER_RUN_PREFIXES)
+                else "losses"
+            )
             writer.add_scalar(f"{namespace}/{key}/seed_{row['seed']}", float(value), step)
     writer.add_scalar("charts/steps_per_second", steps_per_second, step)
     writer.flush()

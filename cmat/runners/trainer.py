@@ -244,7 +244,10 @@ def make_batch(
 def optimise(
     setup: TrainSetup, params: Params, opt_state: Any, batch: Batch, rng: jax.Array
 ) -> tuple[Params, Any, dict[str, jax.Array]]:
-    """PPO epochs over shuffled minibatches; returns the loss metrics averaged over steps."""
+    """PPO epochs over shuffled minibatches; returns the loss metrics averaged over steps.
+
+    With `ppo.target_kl`, the epochs after the first whose mean approximate KL exceeds it are
+    skipped, and `epochs_run` says how many ran."""
     ppo = setup.config.ppo
     grad_fn = jax.value_and_grad(setup.algorithm.loss, has_aux=True)
 
@@ -252,22 +255,50 @@ def optimise(
         params, opt_state = carry
         (loss, metrics), grads = grad_fn(params, minibatch, ppo)
         updates, opt_state = setup.optimizer.update(grads, opt_state, params)
-        metrics = {**metrics, "loss": loss, "grad_norm": optax.tree.norm(grads)}
+        metrics = {
+            **metrics, "loss": loss, "grad_norm": optax.tree.norm(grads),
+            **ppo_lib.block_grad_norms(grads),
+        }
         return (optax.apply_updates(params, updates), opt_state), metrics
 
     def epoch(carry: tuple[Params, Any], key: jax.Array) -> tuple[tuple[Params, Any], dict]:
         size = batch.advantages.shape[0]
         order = jax.random.permutation(key, size)
         minibatches = jax.tree.map(
-            lambda x: x[order].reshape(ppo.num_minibatches, size // ppo.num_minibatches, *x.shape[1:]),
+            lambda x: x[order].reshape(
+                ppo.num_minibatches, size // ppo.num_minibatches, *x.shape[1:]
+            ),
             batch,
         )
         return jax.lax.scan(minibatch_step, carry, minibatches)
 
-    (params, opt_state), metrics = jax.lax.scan(
-        epoch, (params, opt_state), jax.random.split(rng, ppo.epochs)
+    keys = jax.random.split(rng, ppo.epochs)
+    if ppo.target_kl is None:
+        (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
+        return params, opt_state, jax.tree.map(jnp.mean, metrics)
+    target_kl = ppo.target_kl
+
+    def early_stopping_epoch(carry: tuple, key: jax.Array) -> tuple[tuple, dict]:
+        """An epoch unless an earlier one passed `ppo.target_kl` (then the state is kept)."""
+        params, opt_state, stopped = carry
+        shapes = jax.eval_shape(lambda c: epoch(c, key)[1], (params, opt_state))
+        skipped = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+        (params, opt_state), metrics = jax.lax.cond(
+            stopped, lambda c: (c, skipped), lambda c: epoch(c, key), (params, opt_state)
+        )
+        ran = ~stopped
+        stopped = stopped | (jnp.mean(metrics["approx_kl"]) > target_kl)
+        return (params, opt_state, stopped), {**metrics, "ran": ran}
+
+    (params, opt_state, _), metrics = jax.lax.scan(
+        early_stopping_epoch, (params, opt_state, jnp.asarray(False)), keys
     )
-    return params, opt_state, jax.tree.map(jnp.mean, metrics)
+    ran = metrics.pop("ran")
+    epochs_run = jnp.sum(ran)
+    averaged = jax.tree.map(
+        lambda x: jnp.sum(jnp.mean(x, axis=1) * ran) / jnp.maximum(epochs_run, 1), metrics
+    )
+    return params, opt_state, {**averaged, "epochs_run": epochs_run.astype(jnp.float32)}
 
 
 def update_step(setup: TrainSetup, state: TrainerState) -> tuple[TrainerState, dict[str, jax.Array]]:
@@ -307,7 +338,8 @@ def learn(
     target_params = optax.incremental_update(
         params, state.target_params, setup.config.ppo.target_tau
     )
-    episodes = {
+    rollout_metrics = {
+        "explained_variance": ppo_lib.explained_variance(batch.values, batch.targets),
         "episodes": jnp.sum(rollout.done),
         "return_sum": jnp.sum(rollout.finished_return),
         "win_sum": jnp.sum(rollout.won & rollout.done),
@@ -317,7 +349,7 @@ def learn(
         params=params, target_params=target_params, opt_state=opt_state,
         value_norm=value_norm, rng=rng, update_step=state.update_step + 1,
     )
-    return state, {**metrics, **episodes}
+    return state, {**metrics, **rollout_metrics}
 
 
 def run_updates(

@@ -1,0 +1,168 @@
+"""CMAT's named departures from the paper change only what they say, and `--preset paper` is
+exactly the paper's setting."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cmat.algorithms import build_algorithm
+from cmat.algorithms.base import Batch
+from cmat.algorithms.ppo import clipped_surrogate_loss, joint_clip_range
+from cmat.config import NetworkConfig, PPOConfig, load_config
+from cmat.envs.protocol import EnvSpec
+from cmat.errors import CmatError
+from cmat.runners import trainer as trainer_lib
+from cmat.runners.trainer import build_setup, init_state
+
+SPEC = EnvSpec("test", 4, 5, 3, True, 10, False)
+
+
+def batch_for(algorithm, spread: float = 0.3) -> tuple[dict, Batch]:
+    keys = jax.random.split(jax.random.PRNGKey(7), 5)
+    obs = jax.random.normal(keys[0], (32, 4, 5))
+    mask = jnp.ones((32, 4, 3), bool)
+    params = algorithm.init(keys[1], obs[0], mask[0])
+    acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+        params, obs, mask, jax.random.split(keys[2], 32))
+    return params, Batch(
+        obs, mask, acted.actions,
+        acted.log_probs + spread * jax.random.normal(keys[3], (32, 4)), acted.value,
+        jax.random.normal(keys[4], (32,)), jnp.zeros(32), acted.extras,
+        alive=jnp.ones((32, 4), bool).at[:10, 3].set(False),
+    )
+
+
+@pytest.fixture(scope="module")
+def cmat_batch():
+    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=16, init_gain=1.0), SPEC)
+    return (algorithm, *batch_for(algorithm))
+
+
+def test_paper_options_give_the_papers_loss(cmat_batch) -> None:
+    """Defaults: the clipped objective on the joint ratio with [1−ε, 1+ε] and the mean entropy."""
+    algorithm, params, batch = cmat_batch
+    ppo = PPOConfig()
+    _, metrics = algorithm.loss(params, batch, ppo)
+    log_ratio, _, distribution = algorithm.log_ratio(params, batch)
+    ratio = np.exp(np.asarray(log_ratio, np.float64))
+    adv = np.asarray(batch.advantages)
+    objective = np.minimum(ratio * adv, np.clip(ratio, 0.95, 1.05) * adv)
+    assert float(metrics["policy_loss"]) == pytest.approx(-objective.mean(), rel=1e-5)
+    assert float(metrics["entropy"]) == pytest.approx(
+        float(np.asarray(distribution.entropy()).mean()), rel=1e-6)
+
+
+def test_per_agent_joint_clip_widens_the_range_to_the_kth_power(cmat_batch) -> None:
+    algorithm, params, batch = cmat_batch
+    ppo = dataclasses.replace(PPOConfig(), joint_clip="per_agent")
+    _, metrics = algorithm.loss(params, batch, ppo)
+    log_ratio, _, _ = algorithm.log_ratio(params, batch)
+    ratio = np.exp(np.asarray(log_ratio, np.float64))
+    k = np.asarray(batch.alive).sum(axis=1)
+    adv = np.asarray(batch.advantages)
+    objective = np.minimum(ratio * adv, np.clip(ratio, 0.95 ** k, 1.05 ** k) * adv)
+    assert float(metrics["policy_loss"]) == pytest.approx(-objective.mean(), rel=1e-5)
+    outside = (ratio < 0.95 ** k) | (ratio > 1.05 ** k)
+    assert float(metrics["clip_frac"]) == pytest.approx(outside.mean())
+    paper = np.abs(ratio - 1) > 0.05
+    assert outside.mean() < paper.mean()
+    entropy = algorithm.loss(params, batch, PPOConfig())[1]["entropy"]
+    assert float(metrics["entropy"]) == pytest.approx(float(entropy))
+
+
+def test_one_agent_per_agent_clip_is_the_papers_clip() -> None:
+    log_ratio = jnp.linspace(-0.3, 0.3, 13)
+    advantages = jnp.sign(jnp.sin(jnp.arange(13.0)))
+    paper, _ = clipped_surrogate_loss(log_ratio, advantages, 0.1)
+    scaled, _ = clipped_surrogate_loss(
+        log_ratio, advantages, 0.1, clip_range=joint_clip_range(0.1, jnp.ones(13)))
+    assert float(scaled) == pytest.approx(float(paper), rel=1e-6)
+
+
+def test_entropy_sum_is_the_joint_policys_entropy(cmat_batch) -> None:
+    algorithm, params, batch = cmat_batch
+    mean = algorithm.loss(params, batch, PPOConfig())[1]
+    summed = algorithm.loss(params, batch, dataclasses.replace(
+        PPOConfig(), entropy_reduction="sum"))[1]
+    assert float(summed["entropy"]) == pytest.approx(4 * float(mean["entropy"]), rel=1e-6)
+    assert float(summed["policy_loss"]) == float(mean["policy_loss"])
+
+
+def test_kl_early_stop_skips_the_epochs_after_the_target() -> None:
+    def optimised(*overrides: str):
+        config = load_config(overrides=["env=matrix:fig1", "num_envs=4", "rollout_length=5",
+                                        "network.init_gain=1.0", "ppo.lr=0.01", *overrides])
+        setup = build_setup(config)
+        state = init_state(setup, jax.random.PRNGKey(0))
+        state, rollout = trainer_lib.collect_rollout(setup, state)
+        _, batch = trainer_lib.make_batch(setup, state, rollout)
+        params, _, metrics = jax.jit(
+            lambda p, o, b, k: trainer_lib.optimise(setup, p, o, b, k)
+        )(state.params, state.opt_state, batch, jax.random.PRNGKey(1))
+        return params, metrics
+
+    full, full_metrics = optimised("ppo.epochs=4")
+    loose, loose_metrics = optimised("ppo.epochs=4", "ppo.target_kl=1e6")
+    assert float(loose_metrics["epochs_run"]) == 4
+    for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(loose)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    # one minibatch: an epoch measures KL before its step, so epoch 1 sees 0 and epoch 2 stops
+    two, _ = optimised("ppo.epochs=2")
+    stopped, stopped_metrics = optimised("ppo.epochs=4", "ppo.target_kl=1e-12")
+    assert float(stopped_metrics["epochs_run"]) == 2
+    for a, b in zip(jax.tree.leaves(two), jax.tree.leaves(stopped)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    assert "epochs_run" not in full_metrics
+
+
+PAPER = {
+    "num_envs": 8, "rollout_length": 100,
+    "ppo.lr": 5e-4, "ppo.adam_eps": 1e-5, "ppo.epochs": 15, "ppo.num_minibatches": 1,
+    "ppo.clip_eps": 0.05, "ppo.ent_coef": 0.01, "ppo.value_coef": 1.0,
+    "ppo.max_grad_norm": 10.0, "ppo.gamma": 0.99, "ppo.gae_lambda": 0.95,
+    "ppo.value_norm": True, "ppo.huber_loss": True, "ppo.huber_delta": 10.0,
+    "ppo.clipped_value_loss": True, "ppo.target_tau": 0.1, "ppo.joint_clip": "joint",
+    "ppo.entropy_reduction": "mean", "ppo.target_kl": None, "ppo.active_masks": False,
+    "network.n_embd": 64, "network.n_head": 1, "network.n_block": 1,
+    "network.consensus_iterations": "n", "network.consensus_source": "mixture",
+    "network.consensus_policy": "deterministic", "network.init_gain": 0.01,
+    "network.log_std_init": 1.0,
+}
+"""The paper's setting, written from the paper (the MAT SMAC hyper-parameters with 8 rollout
+threads) and shared/reference/README.md."""
+
+
+def value(config, dotted: str):
+    for part in dotted.split("."):
+        config = getattr(config, part)
+    return config
+
+
+def test_the_paper_preset_resolves_to_the_papers_values() -> None:
+    config = load_config(overrides=["preset=paper", "env=smax:6h_vs_8z"])
+    assert config.preset == "paper"
+    for name, expected in PAPER.items():
+        assert value(config, name) == expected, name
+    overridden = load_config(overrides=["preset=paper", "ppo.clip_eps=0.2"])
+    assert overridden.ppo.clip_eps == 0.2 and overridden.num_envs == 8
+    assert load_config(overrides=["preset=paper", "algo=mappo"]).ppo.clip_eps == 0.2
+    with pytest.raises(CmatError, match="unknown preset 'fast'"):
+        load_config(overrides=["preset=fast"])
+
+
+@pytest.mark.parametrize("override", ["ppo.joint_clip=geometric", "ppo.entropy_reduction=max",
+                                      "ppo.target_kl=0", "ppo.target_kl=-1"])
+def test_bad_option_values_are_rejected(override: str) -> None:
+    with pytest.raises(CmatError, match=override.split("=")[0]):
+        load_config(overrides=[override])
+
+
+@pytest.mark.parametrize("algo", ["mat", "mappo"])
+def test_joint_options_are_for_joint_ratio_algorithms(algo: str) -> None:
+    with pytest.raises(CmatError, match="joint-ratio"):
+        load_config(overrides=[f"algo={algo}", "ppo.joint_clip=per_agent"])
