@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
+from test_ppo import plain_gae
 
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
@@ -262,18 +263,6 @@ def test_smax_alive_follows_unit_deaths() -> None:
 
 
 # ----------------------------------------------------------------------------- per-agent GAE
-def numpy_gae(rewards, values, dones, last, gamma, lam):
-    advantages = np.zeros_like(values)
-    running = np.zeros_like(last)
-    for t in reversed(range(len(rewards))):
-        following = last if t == len(rewards) - 1 else values[t + 1]
-        keep = 1.0 - dones[t]
-        delta = rewards[t] + gamma * following * keep - values[t]
-        running = delta + gamma * lam * keep * running
-        advantages[t] = running
-    return advantages
-
-
 @pytest.mark.parametrize("per_agent", [True, False])
 def test_mat_gae_runs_per_agent_on_each_agents_value(per_agent: bool) -> None:
     config = load_config(overrides=[
@@ -299,7 +288,9 @@ def test_mat_gae_runs_per_agent_on_each_agents_value(per_agent: bool) -> None:
     extra = (None,) if per_agent else ()
     rewards = np.asarray(rollout.reward)[(..., *extra)]
     dones = np.asarray(rollout.done, np.float32)[(..., *extra)]
-    expected = numpy_gae(rewards, values[:-1], dones, values[-1], 0.99, 0.95)
+    shape = values[:-1].shape
+    expected, _ = plain_gae(np.broadcast_to(rewards, shape).copy(), values[:-1],
+                            np.broadcast_to(dones, shape), values[-1], 0.99, 0.95)
     assert batch.advantages.shape == ((12, 3) if per_agent else (12,))
     np.testing.assert_allclose(batch.advantages, expected.reshape(batch.advantages.shape),
                                rtol=1e-4, atol=1e-5)
