@@ -166,7 +166,7 @@ class CMAT:
             **diagnostics,
             **policy_diagnostics(
                 distribution.log_prob(batch.actions) - batch.log_probs, log_ratio, ppo.clip_eps,
-                entropies, active_mask(batch, ppo),
+                entropies, batch.alive,
             ),
         }
         if self.stochastic:

@@ -213,7 +213,7 @@ class HAPPO(MAPPO):
             **metrics,
             **policy_diagnostics(
                 agent_log_ratio, jnp.sum(agent_log_ratio, axis=-1), setup.config.ppo.clip_eps,
-                entropies, active_mask(batch, setup.config.ppo),
+                entropies, batch.alive,
             ),
             "value_loss": critic_metrics["value_loss"],
             "loss": metrics["loss"] + critic_metrics["loss"],

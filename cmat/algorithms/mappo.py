@@ -139,6 +139,6 @@ class MAPPO:
             "entropy": entropy,
             **diagnostics,
             **policy_diagnostics(
-                log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, mask
+                log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, batch.alive
             ),
         }

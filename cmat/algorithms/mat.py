@@ -146,7 +146,7 @@ class MAT:
             "entropy": entropy,
             **diagnostics,
             **policy_diagnostics(
-                log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, mask
+                log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, batch.alive
             ),
         }
         return total, metrics, output

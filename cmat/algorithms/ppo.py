@@ -118,7 +118,9 @@ def policy_diagnostics(
     clips (Σ_i of the above, plus a sampled consensus's term); entropy [B, n]. Returns the
     approximate KL ((r − 1) − log r, Schulman's k3 estimator) and the clip fraction
     (|r − 1| > ε) of the joint ratio over samples and of the per-agent ratios over the active
-    entries, and each agent's mean entropy (`entropy_agent_i`)."""
+    entries, and each agent's mean entropy over the samples where it is active
+    (`entropy_agent_i`; a dead agent's forced action has entropy 0). `mask` [B, n] is the
+    batch's `alive` whatever `ppo.active_masks` says: the diagnostics describe active agents."""
     joint = jnp.exp(jnp.clip(joint_log_ratio, -LOG_RATIO_BOUND, LOG_RATIO_BOUND))
     agent = jnp.exp(jnp.clip(agent_log_ratio, -LOG_RATIO_BOUND, LOG_RATIO_BOUND))
     diagnostics = {
@@ -129,7 +131,11 @@ def policy_diagnostics(
             (jnp.abs(agent - 1.0) > clip_eps).astype(jnp.float32), mask
         ),
     }
-    per_agent = jnp.mean(entropy, axis=0)
+    if mask is None:
+        per_agent = jnp.mean(entropy, axis=0)
+    else:
+        weights = jnp.broadcast_to(mask, entropy.shape).astype(entropy.dtype)
+        per_agent = jnp.sum(entropy * weights, axis=0) / jnp.maximum(jnp.sum(weights, axis=0), 1.0)
     for index in range(per_agent.shape[0]):
         diagnostics[f"entropy_agent_{index}"] = per_agent[index]
     return diagnostics
