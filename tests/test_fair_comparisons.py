@@ -31,7 +31,7 @@ from cmat.envs.protocol import EnvSpec
 from cmat.rundir import RunDir
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import (
-    Trainer, Transition, build_setup, init_state, make_batch, nonfinite_code,
+    Trainer, build_setup, init_state, make_batch, nonfinite_code,
 )
 
 REFERENCE = {

@@ -64,7 +64,9 @@ class MAPPO:
             return obs.reshape(*obs.shape[:-2], obs.shape[-2] * obs.shape[-1])
         if global_state is None or global_state.shape[-1] != self.state_dim:
             found = None if global_state is None else global_state.shape
-            raise ValueError(f"the critic needs the global state [..., {self.state_dim}], got {found}")
+            raise ValueError(
+                f"the critic needs the global state [..., {self.state_dim}], got {found}"
+            )
         return global_state
 
     def actor_inputs(self, obs: jax.Array) -> jax.Array:

@@ -146,7 +146,8 @@ class HostTrainer:
 
     def _per_seed(self, batch: np.ndarray) -> np.ndarray:
         """[seeds·envs, ...] → [seeds, envs, ...]."""
-        return batch.reshape(self.config.seeds, batch.shape[0] // self.config.seeds, *batch.shape[1:])
+        seeds = self.config.seeds
+        return batch.reshape(seeds, batch.shape[0] // seeds, *batch.shape[1:])
 
     def _state_timestep(self, timestep: HostTimeStep) -> TimeStep:
         return TimeStep(*(jnp.asarray(self._per_seed(np.asarray(x))) for x in timestep))
