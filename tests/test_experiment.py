@@ -20,7 +20,8 @@ from rliable import metrics as rliable_metrics
 
 from cmat.cli import main
 from cmat.errors import CmatError
-from cmat.experiments.report import improvement_probability, iqm
+from cmat.experiments.report import Line, aggregate, improvement_probability, iqm
+from cmat.experiments.spec import load_spec
 from cmat.rundir import RunDir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -121,6 +122,21 @@ def test_grid_writes_figures_table_and_statistics(grid: tuple[Path, bytes, str])
 
 def copy_grid(grid: tuple[Path, bytes, str], tmp_path: Path) -> Path:
     return Path(shutil.copytree(grid[0], tmp_path / "smoke", ignore=shutil.ignore_patterns(".lock")))
+
+
+def test_report_only_reports_the_runs_on_disk_and_starts_none(
+    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    shutil.rmtree(out / MAT_RUN)
+    (out / "results.md").unlink()
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--report-only"]) == 0
+    assert not (out / MAT_RUN).exists()
+    table = (out / "results.md").read_text()
+    assert "| task | metric | steps | CMAT | CMAT-finetune (action) |" in table
+    assert f"| {MAT_RUN.removeprefix('runs/')} | new | — |" in table
+    assert main(["experiment", str(SMOKE), "--out", str(tmp_path / "none"), "--report-only"]) == 2
+    assert "--report-only: no experiment directory" in one_error_line(capsys.readouterr().err)
 
 
 def test_corrupt_and_partial_run_directories_are_reported_and_redone(
@@ -224,6 +240,14 @@ SPEC = {"steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"]}
         ({"variants": {"a": {"from": "b", "finetune": "action"},
                        "b": {"from": "a", "finetune": "consensus"}}}, "form a cycle"),
         ({"variants": {"a": {"figure": "fig3"}}}, "figure must be one or a list of"),
+        ({"variants": {"a": {"envs": ["matrix:penalty"]}}},
+         "variants.a: envs names 'matrix:penalty', which is not one of the spec's envs"),
+        ({"envs": ["matrix:fig1", "matrix:penalty"],
+          "variants": {"a": {"envs": ["matrix:fig1"]}}}, "no variant runs on 'matrix:penalty'"),
+        ({"envs": ["matrix:fig1", "matrix:penalty"],
+          "variants": {"a": {"envs": ["matrix:penalty"]}, "b": {"envs": ["matrix:fig1"]},
+                       "ft": {"from": "a", "finetune": "action"}}},
+         "variant 'a' it starts from does not run on every environment this stage runs on"),
     ],
 )
 def test_bad_specs_are_one_error_line(
@@ -255,6 +279,43 @@ def test_shipped_specs_plan(name: str, tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["experiment", str(REPO / "experiments" / name), "--out", str(tmp_path / "x"),
                  "--dry-run"]) == 0
     assert "runs in" in capsys.readouterr().out
+
+
+def test_a_variant_restricted_to_some_envs_plans_and_aggregates_only_there(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "restricted.yaml"
+    path.write_text(yaml.safe_dump({
+        "steps": 100, "envs": ["matrix:fig1", "matrix:penalty"], "algos": ["cmat", "mat"],
+        "variants": {"default": {}, "probe": {"algos": ["cmat"], "envs": ["matrix:penalty"]}},
+    }))
+    assert main(["experiment", str(path), "--out", str(tmp_path / "x"), "--dry-run"]) == 0
+    planned = [line.split()[1] for line in capsys.readouterr().out.splitlines()
+               if line.startswith("  new")]
+    assert sorted(planned) == sorted([
+        "matrix_fig1/default/cmat-s0", "matrix_fig1/default/mat-s0",
+        "matrix_penalty/default/cmat-s0", "matrix_penalty/default/mat-s0",
+        "matrix_penalty/probe/cmat-s0",
+    ])
+
+    def line(label: str, variant: str, wins: list[float]) -> Line:
+        rows = [{"kind": "eval", "seed": str(seed), "env_steps": "100", "win_rate": str(win)}
+                for seed, win in enumerate(wins)]
+        return Line(label, variant, "cmat", ("main",), [], rows)
+
+    spec = load_spec(path)
+    lines = {"matrix:fig1": [line("CMAT", "default", [1.0, 0.0]),
+                             line("MAT", "default", [0.0, 0.0])],
+             "matrix:penalty": [line("CMAT", "default", [1.0, 1.0]),
+                                line("MAT", "default", [0.0, 1.0]),
+                                line("probe", "probe", [1.0, 1.0])]}
+    metrics = {"matrix:fig1": "win_rate", "matrix:penalty": "win_rate"}
+    result = aggregate(lines, metrics, spec)
+    assert result is not None
+    assert result["tasks"] == ["matrix:fig1", "matrix:penalty"]
+    assert list(result["lines"]) == ["CMAT", "MAT"]
+    assert result["lines"]["CMAT"]["mean"] == pytest.approx(0.75)
+    assert result["lines"]["MAT"]["mean"] == pytest.approx(0.25)
 
 
 def test_statistics_equal_rliables() -> None:

@@ -35,6 +35,7 @@ from matplotlib.figure import Figure
 from scipy import stats
 
 from cmat.experiments.plots import Curve, eval_curve
+from cmat.experiments.spec import ExperimentSpec
 from cmat.rundir import RunDir
 
 if TYPE_CHECKING:
@@ -247,19 +248,21 @@ def interval(samples: np.ndarray) -> list[float]:
 
 
 def aggregate(
-    lines: dict[str, list[Line]], metrics: dict[str, str], reps: int
+    lines: dict[str, list[Line]], metrics: dict[str, str], spec: ExperimentSpec
 ) -> dict[str, Any] | None:
-    """IQM and mean with CIs per main line, and P(first line > each other), over the tasks
-    where every main line has final scores; None when no task has two lines to compare."""
+    """IQM and mean with CIs per main line of a variant that runs on every environment, and
+    P(first line > each other), over the tasks where every such line has final scores; None
+    when no task has two lines to compare."""
+    everywhere = {v.name for v in spec.variants if v.envs is None}
     labels: list[str] = []
     for task_lines in lines.values():
         for line in task_lines:
-            if "main" in line.figures and line.label not in labels:
+            if "main" in line.figures and line.variant in everywhere and line.label not in labels:
                 labels.append(line.label)
     per_task: dict[str, dict[str, list[float]]] = {}
     for env_id, task_lines in lines.items():
         finals = {line.label: line.finals(metrics[env_id])
-                  for line in task_lines if "main" in line.figures}
+                  for line in task_lines if line.label in labels}
         if all(finals.get(label) for label in labels):
             per_task[env_id] = finals
     if not per_task or len(labels) < 2:
@@ -269,6 +272,7 @@ def aggregate(
     runs = {label: min(len(normalised[t][label]) for t in tasks) for label in labels}
     matrices = {label: np.array([[normalised[t][label][i] for t in tasks]
                                  for i in range(runs[label])]) for label in labels}
+    reps = spec.bootstrap_reps
     rng = np.random.default_rng(0)
     samples = {label: bootstrap(matrix, reps, rng) for label, matrix in matrices.items()}
     result: dict[str, Any] = {"tasks": tasks, "reps": reps, "lines": {}, "improvement": {}}
@@ -335,7 +339,7 @@ def summarise(
         "name": plan.spec.name,
         "seeds": plan.spec.seeds,
         "tasks": tasks,
-        "aggregate": aggregate(lines, metrics, plan.spec.bootstrap_reps),
+        "aggregate": aggregate(lines, metrics, plan.spec),
         "runs": [{"run": run.name, "status": run.found, "note": run.note,
                   "outcome": run.outcome} for run in plan.runs],
     }
@@ -380,8 +384,8 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
         out.append("Not computed: it needs two or more main lines with final scores on a "
                    "common task.")
     else:
-        out += [(f"Over {len(agg['tasks'])} task(s) ({', '.join(agg['tasks'])}) where every "
-                 f"line has final scores; win rates as they are, returns min-max normalised per "
+        out += [(f"Lines of the variants that run on every task, over {len(agg['tasks'])} "
+                 f"task(s) ({', '.join(agg['tasks'])}) where each of them has final scores; win rates as they are, returns min-max normalised per "
                  f"task; stratified bootstrap over seeds within tasks, {agg['reps']} "
                  f"replications, 95% percentile intervals (rliable's IQM and probability of "
                  f"improvement)."), "",

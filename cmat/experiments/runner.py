@@ -31,7 +31,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -99,27 +99,34 @@ def run_experiment(
     parallel: int | None = None,
     ray_address: str | None = None,
     dry_run: bool = False,
+    report_only: bool = False,
 ) -> Plan:
-    """Plan, execute and report the experiment of `spec_path` in `out`."""
+    """Plan, execute and report the experiment of `spec_path` in `out`; with `report_only`,
+    report the complete runs already in `out` and start none (without the directory's lock,
+    so it can report a grid another process is still running)."""
     spec = load_spec(spec_path)
     if parallel is not None and parallel <= 0:
         raise CmatError(f"--parallel must be > 0, got {parallel}")
+    if dry_run and report_only:
+        raise CmatError("--dry-run and --report-only exclude each other")
     out = (Path(out) if out is not None else Path("runs") / "experiments" / spec.name).absolute()
     plan = make_plan(spec, out)
     if dry_run:
         print_plan(plan)
         return plan
+    if report_only and not out.is_dir():
+        raise CmatError(f"--report-only: no experiment directory {out}")
     out.mkdir(parents=True, exist_ok=True)
-    with experiment_lock(out):
+    with nullcontext() if report_only else experiment_lock(out):
         inspect_all(plan)  # again: another experiment may have held the directory until now
         print_plan(plan)
         if spec.path.resolve() != (out / "spec.yaml").resolve():
             shutil.copyfile(spec.path, out / "spec.yaml")
         for run in plan.runs:
-            if run.status == REDO:
+            if run.status == REDO and not report_only:
                 discard(run, out)
         jobs = [run for run in plan.runs if run.status in (NEW, RESUME, REDO)]
-        if jobs:
+        if jobs and not report_only:
             cache = out / "jax_cache"
             executor = (RayExecutor(ray_address, cache) if ray_address is not None
                         else LocalExecutor(cache))
@@ -150,7 +157,7 @@ def make_plan(spec: ExperimentSpec, out: Path) -> Plan:
     ordered = order_variants(spec.variants)
     for env in spec.envs:
         env_runs = []
-        for variant in ordered:
+        for variant in (v for v in ordered if v.covers(env.id)):
             for algo in variant.algos:
                 for seed, seeds in spec.seed_groups():
                     base = cells.get((env.id, variant.base or "", algo, seed))

@@ -17,6 +17,7 @@ variants:                         # default: {default: {}}
            label: "m = n/2"}
   finetune_action: {algos: [cmat], from: default, finetune: action, steps: 1000,
                     label: "CMAT-finetune (action)"}
+  tau_one: {algos: [cmat], envs: [matrix:fig1], set: {ppo.target_tau: 1.0}}
 bootstrap_reps: 2000              # bootstrap replications of the aggregate statistics
 ```
 
@@ -24,7 +25,9 @@ A variant with `from` is a fine-tuning stage: it starts from the finished run of
 with the same environment, algorithm and seeds (`cmat finetune`), and its `set` applies on top
 of that run's config. `figure` puts a variant in the Fig. 3-style figure (`main`, the default),
 the Fig. 4-style one (`ablation`, which draws CMAT lines only), both (`[main, ablation]`, e.g. the
-default variant as the ablation's reference) or neither (`none`). An env with `unavailable` is reported and
+default variant as the ablation's reference) or neither (`none`). `envs` restricts a variant to
+some of the spec's environments (default: all of them); the aggregate statistics then compare
+only the lines that run on every environment. An env with `unavailable` is reported and
 skipped without being tried.
 """
 
@@ -44,7 +47,7 @@ FIGURES = ("main", "ablation", "none")
 SPEC_KEYS = ("name", "description", "steps", "seeds", "seed", "seeds_per_run", "set", "envs",
              "algos", "variants", "bootstrap_reps")
 ENV_KEYS = ("id", "steps", "set", "label", "unavailable")
-VARIANT_KEYS = ("algos", "set", "steps", "from", "finetune", "figure", "label")
+VARIANT_KEYS = ("algos", "envs", "set", "steps", "from", "finetune", "figure", "label")
 ALGO_LABELS = {"cmat": "CMAT", "mat": "MAT", "pmat": "PMAT", "triple_bert": "Triple-BERT",
                "happo": "HAPPO", "mappo": "MAPPO"}
 
@@ -76,6 +79,11 @@ class Variant:
     """Which figures draw this variant: 'main' (Fig. 3 style), 'ablation' (Fig. 4 style, CMAT
     lines only)."""
     label: str | None
+    envs: tuple[str, ...] | None = None
+    """The environment ids this variant runs on; None: every environment of the spec."""
+
+    def covers(self, env_id: str) -> bool:
+        return self.envs is None or env_id in self.envs
 
     def line_label(self, algo: str) -> str:
         """The legend entry of this variant's `algo` runs."""
@@ -138,9 +146,12 @@ def load_spec(path: Path) -> ExperimentSpec:
     variants_raw = raw.get("variants") or {"default": {}}
     if not isinstance(variants_raw, dict):
         raise CmatError(f"{where}: variants must be a mapping of names to settings")
-    variants = tuple(variant(str(name), settings, algos, f"{where}: variants.{name}")
+    variants = tuple(variant(str(name), settings, algos, ids, f"{where}: variants.{name}")
                      for name, settings in variants_raw.items())
     check_stages(variants, where)
+    idle = [env_id for env_id in ids if not any(v.covers(env_id) for v in variants)]
+    if idle:
+        raise CmatError(f"{where}: no variant runs on {idle[0]!r} (see the variants' envs)")
     return ExperimentSpec(
         name=str(raw.get("name") or path.stem),
         path=path,
@@ -176,7 +187,9 @@ def env_entry(item: Any, steps: int, where: str) -> EnvEntry:
     )
 
 
-def variant(name: str, settings: Any, algos: tuple[str, ...], where: str) -> Variant:
+def variant(
+    name: str, settings: Any, algos: tuple[str, ...], env_ids: list[str], where: str
+) -> Variant:
     settings = {} if settings is None else settings
     if not isinstance(settings, dict):
         raise CmatError(f"{where} must be a mapping of settings")
@@ -199,6 +212,13 @@ def variant(name: str, settings: Any, algos: tuple[str, ...], where: str) -> Var
                             f"got {kind!r}")
     steps = settings.get("steps")
     label = settings.get("label")
+    envs = None
+    if "envs" in settings:
+        envs = tuple(str(e) for e in listed(settings["envs"], f"{where}: envs"))
+        unknown = [e for e in envs if e not in env_ids]
+        if unknown:
+            raise CmatError(f"{where}: envs names {unknown[0]!r}, which is not one of the "
+                            f"spec's envs ({', '.join(env_ids)})")
     return Variant(
         name=name,
         algos=variant_algos,
@@ -208,6 +228,7 @@ def variant(name: str, settings: Any, algos: tuple[str, ...], where: str) -> Var
         finetune=finetune,
         figures=tuple(f for f in figures if f != "none"),
         label=None if label is None else str(label),
+        envs=envs,
     )
 
 
@@ -223,6 +244,10 @@ def check_stages(variants: tuple[Variant, ...], where: str) -> None:
         if missing:
             raise CmatError(f"{where}: variants.{v.name}: variant {v.base!r} it starts from "
                             f"has no {missing[0]} runs")
+        base = by_name[v.base]
+        if base.envs is not None and (v.envs is None or not all(map(base.covers, v.envs))):
+            raise CmatError(f"{where}: variants.{v.name}: variant {v.base!r} it starts from "
+                            f"does not run on every environment this stage runs on")
         seen, current = {v.name}, by_name[v.base]
         while current.base is not None:
             if current.name in seen:
