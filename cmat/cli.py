@@ -110,6 +110,10 @@ def build_parser() -> argparse.ArgumentParser:
                             help="run on the Ray cluster at ADDRESS (needs the ray extra)")
     experiment.add_argument("--dry-run", action="store_true",
                             help="print the plan (what is reused, resumed, redone) and stop")
+    experiment.add_argument("--report-only", action="store_true",
+                            help="write the figures and tables from the complete runs on disk "
+                                 "and start no run (a grid still in progress, or split over "
+                                 "machines)")
     experiment.set_defaults(handler=experiment_command)
     return parser
 
@@ -155,8 +159,12 @@ def train_command(args: argparse.Namespace) -> None:
         explicit = [f"{key}={value}" for key, value in flags.items() if value is not None]
         config = load_config(args.config, [*args.set, *explicit])
         trainer = build_trainer(config)
-        run_dir = RunDir.create(args.out or default_out(config), config)
-    train_into(trainer, run_dir, resume=args.resume is not None)
+        out = RunDir.check_free(args.out or default_out(config)).path
+        start = trainer.init()  # an environment that fails at reset leaves no run directory
+        run_dir = RunDir.create(out, config)
+        train_into(trainer, run_dir, resume=False, start=start)
+        return
+    train_into(trainer, run_dir, resume=True)
 
 
 def train_into(
@@ -245,7 +253,7 @@ def experiment_command(args: argparse.Namespace) -> None:
     from cmat.experiments.runner import run_experiment
 
     run_experiment(args.spec, out=args.out, parallel=args.parallel, ray_address=args.ray,
-                   dry_run=args.dry_run)
+                   dry_run=args.dry_run, report_only=args.report_only)
 
 
 def plot_command(args: argparse.Namespace) -> None:

@@ -155,6 +155,13 @@ class TrainConfig:
     host_workers: int | None = None
     """Host environments only: worker processes that step them (0: in this process); None takes
     the suite's measured default (cmat.envs.host.DEFAULT_WORKERS)."""
+    host_crash_limit: int = 3
+    """Host environments only: crashes in a row of one environment (exceptions inside its
+    simulator's reset or step) that stop the run; fewer restart it (cmat.envs.host.pool)."""
+    host_nonfinite: str = "error"
+    """Host environments only: a NaN or infinite observation, reward or state stops the run with
+    a one-line error ('error'), or is replaced by 0 and counted in metrics.csv's `env_nonfinite`
+    ('warn')."""
     finetune: str | None = None
     """None (joint training), or the paper's fine-tuning stage (Algorithm 1, B), CMAT only:
     'consensus' trains only Critic-MLP, decoder and Actor-Compressor; 'action' trains only
@@ -202,6 +209,10 @@ def validate(config: TrainConfig) -> TrainConfig:
         (config.eval_episodes > 0, f"eval_episodes must be > 0, got {config.eval_episodes}"),
         (config.host_workers is None or config.host_workers >= 0,
          f"host_workers must be >= 0, got {config.host_workers}"),
+        (config.host_crash_limit >= 1,
+         f"host_crash_limit must be >= 1, got {config.host_crash_limit}"),
+        (config.host_nonfinite in ("error", "warn"),
+         f"host_nonfinite must be error or warn, got {config.host_nonfinite!r}"),
         (config.log_interval is None or config.log_interval > 0,
          f"log_interval must be > 0, got {config.log_interval}"),
         (net.n_embd > 0 and net.n_head > 0 and net.n_embd % net.n_head == 0,

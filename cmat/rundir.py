@@ -41,9 +41,10 @@ DIAGNOSTIC_COLUMNS = (
 COLUMNS = (
     "kind", "seed", "env_steps", "episode_return", "win_rate", *LOSS_COLUMNS, *DIAGNOSTIC_COLUMNS
 )
-PER_RUN_PREFIXES = ("entropy_agent_", "grad_norm_", "epochs_run")
-"""Diagnostics whose names depend on the run (one per agent, one per parameter block): their
-columns follow COLUMNS in the order the first rows give them."""
+PER_RUN_PREFIXES = ("entropy_agent_", "grad_norm_", "epochs_run", "env_restarts", "env_nonfinite")
+"""Diagnostics whose names depend on the run (one per agent, one per parameter block, host
+environments' restarts and non-finite values replaced, cumulative per seed): their columns
+follow COLUMNS in the order the first rows give them."""
 CHECKPOINT_MAGIC = b"CMAT-CHECKPOINT 1\n"
 
 Row = Mapping[str, str | int | float]
@@ -78,6 +79,15 @@ class RunDir:
     @classmethod
     def create(cls, path: Path, config: TrainConfig) -> RunDir:
         """Start a new run in `path`, which must not hold one already."""
+        run = cls.check_free(path)
+        run.path.mkdir(parents=True, exist_ok=True)
+        run.write_config(config)
+        return run
+
+    @classmethod
+    def check_free(cls, path: Path) -> RunDir:
+        """`path` as a run directory not created yet: CmatError where it holds a run already or
+        is a file."""
         run = cls(Path(path))
         if run.config_path.exists() or run.metrics_path.exists():
             raise CmatError(
@@ -85,8 +95,6 @@ class RunDir:
             )
         if run.path.exists() and not run.path.is_dir():
             raise CmatError(f"--out {run.path} is not a directory")
-        run.path.mkdir(parents=True, exist_ok=True)
-        run.write_config(config)
         return run
 
     @classmethod

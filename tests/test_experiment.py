@@ -19,8 +19,10 @@ import yaml
 from rliable import metrics as rliable_metrics
 
 from cmat.cli import main
+from cmat.config import load_config
 from cmat.errors import CmatError
 from cmat.experiments.report import Line, aggregate, improvement_probability, iqm
+from cmat.experiments.runner import run_experiment
 from cmat.experiments.spec import load_spec
 from cmat.rundir import RunDir
 
@@ -316,6 +318,19 @@ def test_a_variant_restricted_to_some_envs_plans_and_aggregates_only_there(
     assert list(result["lines"]) == ["CMAT", "MAT"]
     assert result["lines"]["CMAT"]["mean"] == pytest.approx(0.75)
     assert result["lines"]["MAT"]["mean"] == pytest.approx(0.25)
+
+
+def test_a_spec_names_the_paper_preset_or_the_defaults(tmp_path: Path) -> None:
+    path = tmp_path / "presets.yaml"
+    path.write_text(yaml.safe_dump({
+        "steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"],
+        "variants": {"default": {}, "paper": {"set": {"preset": "paper"}}},
+    }))
+    plan = run_experiment(path, out=tmp_path / "x", dry_run=True)
+    configs = {run.variant.name: run.config for run in plan.runs}
+    assert configs["paper"].preset == "paper" and configs["default"].preset is None
+    assert (configs["paper"].num_envs, configs["default"].num_envs) == (8, 32)
+    assert configs["paper"].ppo == load_config(overrides=["preset=paper"]).ppo
 
 
 def test_statistics_equal_rliables() -> None:

@@ -304,7 +304,8 @@ def test_env_that_raises_is_restarted(caplog: pytest.LogCaptureFixture) -> None:
         batches = [pool.step(np.zeros((2, 2), int)) for _ in range(4)]
     # both envs raise at their 3rd step: that step ends their episodes (truncated)
     assert [bool(b.done[0]) for b in batches] == [False, False, True, False]
-    assert batches[2].reward.tolist() == [0.0, 0.0] and pool.faults == 2
+    assert batches[2].reward.tolist() == [0.0, 0.0]
+    assert pool.counters()["env_restarts"].tolist() == [1, 1]
     assert "restarted it, its episode counts as truncated" in caplog.text
 
 
@@ -351,7 +352,8 @@ def test_killed_worker_and_a_restored_checkpoint_are_survived(
     monkeypatch.setattr(pool, "step", step_then_kill)
     with caplog.at_level(logging.WARNING, logger="cmat.host"):
         after, metrics = trainer.train_chunk(restored)
-    assert "worker process 0 died" in caplog.text and trainer.env_faults == 16
+    assert "worker process 0 died" in caplog.text
+    assert trainer.env_counters()["env_restarts"].tolist() == [16, 0]  # worker 0: seed 0's envs
     assert trainer.env_steps(after) == 4800 and np.isfinite(metrics["episode_return"]).all()
     assert np.all(trainer.evaluate(after, 16)["episode_return"] >= 4.0)
 
@@ -365,17 +367,17 @@ def reach_run() -> Iterator[tuple[HostTrainer, TrainerState]]:
     trainer.close()
 
 
-def test_continuous_actions_are_clipped_to_each_agents_bounds(reach_run: Any) -> None:
+def test_continuous_actions_are_mapped_onto_each_agents_bounds(reach_run: Any) -> None:
     trainer, _ = reach_run
     spec = trainer.env_spec
-    assert (spec.action_dim, spec.discrete, spec.action_low, spec.action_high) == (
-        3, False, pytest.approx(-0.2), pytest.approx(0.3))
+    assert (spec.action_dim, spec.discrete, spec.action_low, spec.action_high) == (3, False, -1, 1)
     received = [a for env in trainer._pool.envs for a in env.env.received]
     assert len(received) == 2 * 10 * 3 and [a.shape for a in received[:3]] == [(1,), (2,), (3,)]
     values = np.concatenate(received)
     assert values.min() >= ReachGame.LOW and values.max() <= ReachGame.HIGH
-    # the policy samples far outside [-0.2, 0.3]: clipping was needed
-    assert np.mean((values == ReachGame.LOW) | (values == ReachGame.HIGH)) > 0.1
+    # the policy's N(0, 0.37) in [-1, 1] reaches most of [-0.2, 0.3] around its midpoint
+    assert values.min() < -0.1 and values.max() > 0.2
+    assert abs(np.median(values) - (ReachGame.LOW + ReachGame.HIGH) / 2) < 0.05
 
 
 def test_permuting_agents_permutes_the_policy_through_the_host_runner(reach_run: Any) -> None:

@@ -28,7 +28,7 @@ from cmat.algorithms import ppo as ppo_lib
 from cmat.algorithms.base import ActResult, Params
 from cmat.config import TrainConfig
 from cmat.envs.host import default_workers, make_host_env
-from cmat.envs.host.pool import InProcessPool, WorkerPool, make_pool
+from cmat.envs.host.pool import COUNTERS, InProcessPool, WorkerPool, make_pool
 from cmat.envs.host.protocol import HostTimeStep
 from cmat.envs.protocol import EnvSpec, TimeStep
 from cmat.runners.trainer import (
@@ -109,7 +109,8 @@ class HostTrainer:
         self.workers = (
             config.host_workers if config.host_workers is not None else default_workers(config.env)
         )
-        probe = make_host_env(config.env, seed=config.seed, **config.env_kwargs)
+        probe = make_host_env(config.env, seed=config.seed, nonfinite=config.host_nonfinite,
+                              **config.env_kwargs)
         self.env_spec = probe.spec
         self._spare = [probe]  # becomes the first environment of an in-process pool
         self.setup = build_setup(config, SpecOnly(self.env_spec))  # type: ignore[arg-type]
@@ -134,7 +135,9 @@ class HostTrainer:
 
     def _new_pool(self, seeds: list[int]) -> InProcessPool | WorkerPool:
         spare, self._spare = self._spare, []
-        return make_pool(self.config.env, self.config.env_kwargs, seeds, self.workers, spare)
+        config = self.config
+        return make_pool(config.env, config.env_kwargs, seeds, self.workers, spare,
+                         config.host_crash_limit, config.host_nonfinite)
 
     def _start_episodes(self) -> HostTimeStep:
         """Build the training pool if needed and start an episode in every environment."""
@@ -166,11 +169,13 @@ class HostTrainer:
         """Process ids of the training pool's workers (empty in-process)."""
         return self._pool.worker_pids() if self._pool is not None else []
 
-    @property
-    def env_faults(self) -> int:
-        """Training environments restarted after a fault so far: in-process, every one; with
-        workers, those of dead workers (workers log the environments they restart)."""
-        return self._pool.faults if self._pool is not None else 0
+    def env_counters(self) -> dict[str, np.ndarray]:
+        """Per seed, over its training environments so far: simulator restarts
+        (`env_restarts`) and non-finite values replaced by 0 (`env_nonfinite`)."""
+        if self._pool is None:
+            return {name: np.zeros(self.config.seeds, np.int64) for name in COUNTERS}
+        return {name: self._per_seed(values).sum(axis=1)
+                for name, values in self._pool.counters().items()}
 
     # --------------------------------------------------------------------------------- training
     def seed_keys(self, offset: int = 0) -> jax.Array:
@@ -246,6 +251,7 @@ class HostTrainer:
         stacked = jax.tree.map(lambda *x: jnp.stack(x, axis=1), *per_update)
         numbers = {key: np.asarray(value) for key, value in self._summarise(stacked).items()}
         numbers["env_steps"] = np.full(self.config.seeds, self.env_steps(state))
+        numbers.update(self.env_counters())
         return state, numbers
 
     # ------------------------------------------------------------------------------- evaluation

@@ -37,10 +37,13 @@ def is_host_env(env_id: str) -> bool:
 
 
 def make_host_env(
-    env_id: str, agent_id: bool = False, seed: int | None = None, **kwargs: Any
+    env_id: str, agent_id: bool = False, seed: int | None = None, nonfinite: str = "error",
+    **kwargs: Any
 ) -> HostEnv:
     """Build the host env `env_id`; `agent_id` appends one-hot agent ids to observations;
-    `seed` seeds simulators that take their seed when built (GRF; others seed at `reset`)."""
+    `seed` seeds simulators that take their seed when built (GRF; others seed at `reset`);
+    `nonfinite` ("error" or "warn", `TrainConfig.host_nonfinite`) says what a NaN or infinite
+    observation, reward or state does (`cmat.envs.host.protocol.AutoReset`)."""
     prefix, _, name = env_id.partition(":")
     env: HostEnv
     if prefix == "pettingzoo":
@@ -60,6 +63,7 @@ def make_host_env(
             f"unknown host environment prefix {prefix!r} in {env_id!r}; "
             f"available: {', '.join(HOST_PREFIXES)}"
         )
+    env.nonfinite = nonfinite
     return HostAgentIdWrapper(env) if agent_id else env
 
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from cmat.envs.host.protocol import AutoReset
+from cmat.envs.host.protocol import AutoReset, simulator_call
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 
@@ -93,13 +93,15 @@ class GRFEnv(AutoReset):
         return np.asarray(obs, np.float32).reshape(self.num_agents, OBS_DIM)
 
     def _reset(self, seed: int | None) -> tuple[np.ndarray, np.ndarray]:
-        result = self.env.reset()
+        with simulator_call(self.spec.env_id, "reset"):
+            result = self.env.reset()
         obs = result[0] if isinstance(result, tuple) else result
         self._score = 0.0
         return self._obs(obs), self._mask
 
     def _step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, bool, bool]:
-        result = self.env.step([int(a) for a in np.asarray(actions).reshape(-1)])
+        with simulator_call(self.spec.env_id, "step"):
+            result = self.env.step([int(a) for a in np.asarray(actions).reshape(-1)])
         if len(result) == 5:
             obs, reward, terminated, truncated, info = result
             done = bool(terminated or truncated)

@@ -1,27 +1,37 @@
 """`pettingzoo:package.module:factory`: any PettingZoo `ParallelEnv` behind the host protocol.
 
 How a ParallelEnv maps onto the protocol (README, "Host environments"):
-- Agents are `possible_agents` in their order. An agent that terminated while others go on is
-  dead until the episode ends: zero observation, and (discrete) only action 0 available, so its
-  forced action adds 0 to the joint log-ratio; what it is sent is nothing (it is not stepped).
+- Agents are `possible_agents` in their order. The live set is `env.agents`, read after every
+  reset and step: agents may leave, join after `reset`, or come back. An agent outside it, or
+  in it without an observation this step, is inactive exactly as a dead one: zero observation,
+  (discrete) only action 0 available, so its forced action adds 0 to the joint log-ratio, and
+  `alive` False. Actions are sent to the agents of `env.agents` only.
 - Observations: each agent's space is flattened (`gymnasium.spaces.flatten`; a Dict holding
   "observation" and "action_mask" contributes its "observation") and zero-padded at the end to the
-  largest agent's size.
+  largest agent's size. An observation whose shape is not its space's is a `CmatError` naming
+  the agent, the step and both shapes.
 - Actions: all agents Discrete (sizes may differ: the missing actions are masked out) or all Box
   (sizes may differ: an agent uses the first entries of the padded vector, and the rest are sampled
-  but ignored). Box actions are clipped to each agent's own bounds before stepping (clip, not a
-  tanh squash: the policy's log-probability is that of the unclipped sample, as in MAT).
+  but ignored). The policy acts in a normalised range: every Box dimension with finite bounds
+  maps [-1, 1] affinely onto [low, high] (after clipping to [-1, 1]), so any finite Box is
+  reached whatever its offset and scale; a dimension with an infinite bound is sent as sampled,
+  clipped to its finite side. The stored log-probability is that of the policy's own sample:
+  the map is fixed and affine, so the ratio of two policies' densities (each agent's r_i, and
+  the joint ratio Π_i r_i) is the same in either space.
 - Action masks: `obs[agent]["action_mask"]` or `info[agent]["action_mask"]` where the env gives
   them; otherwise every action is available.
 - Team reward: the mean of the rewards of the agents that got one this step (a shared reward
-  passes through unchanged; a sum would scale with the team size).
+  passes through unchanged; a sum would scale with the team size). A reward may be a number, a
+  NumPy scalar or a size-1 array; any other shape is a `CmatError`.
 - Global state: `env.state()` flattened, where the env implements it (its size from
   `state_space` or one probing reset); otherwise none, and centralised critics read the
   concatenated observations. MaMuJoCo's `state()` is the single-agent environment's observation.
-- Active agents (`alive`): the agents still in the episode.
-- Done: every agent terminated or truncated (or `env.agents` is empty), or `max_episode_steps`
-  transitions elapsed. Won: any agent's info says `"won": True` at the end; the win rate is
-  reported only where the env's `metadata["has_win_rate"]` is true.
+- Done: `env.agents` is empty (where the env keeps no `agents`, every agent terminated or
+  truncated), or `max_episode_steps` transitions elapsed. Won: any agent's info says
+  `"won": True` at the end; the win rate is reported only where the env's
+  `metadata["has_win_rate"]` is true.
+- Crashes: an exception inside the env's own `reset`, `step` or `state` is a `SimulatorCrash`
+  (the pools restart the env); a malformed return value is a `CmatError` (the run stops).
 """
 
 from __future__ import annotations
@@ -31,7 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from cmat.envs.host.protocol import AutoReset
+from cmat.envs.host.protocol import AutoReset, simulator_call
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 
@@ -70,6 +80,16 @@ def make_pettingzoo_env(env_id: str, target: str, **kwargs: Any) -> PettingZooEn
     return PettingZooEnv(env, env_id)
 
 
+def implements_state(env: Any) -> bool:
+    """Whether the env's class overrides `ParallelEnv.state` (whose base raises
+    NotImplementedError), so no probing reset is spent on envs without one."""
+    try:
+        from pettingzoo import ParallelEnv
+    except ImportError:
+        return True
+    return getattr(type(env), "state", None) is not ParallelEnv.state
+
+
 def probe_state_dim(env: Any, env_id: str) -> int:
     """The size of `env.state()`: from `state_space` where the env declares one, else from one
     call after a probing reset; 0 where `state()` is not implemented."""
@@ -78,7 +98,7 @@ def probe_state_dim(env: Any, env_id: str) -> int:
     space = getattr(env, "state_space", None)
     if isinstance(space, spaces.Space):
         return int(spaces.flatdim(space))
-    if not callable(getattr(env, "state", None)):
+    if not callable(getattr(env, "state", None)) or not implements_state(env):
         return 0
     try:
         env.reset(seed=None)
@@ -120,12 +140,14 @@ class PettingZooEnv(AutoReset):
         elif all(isinstance(space, spaces.Box) for space in action_spaces):
             discrete = False
             self._action_sizes = [int(np.prod(space.shape)) for space in action_spaces]
-            self._lows = [space.low.reshape(-1).astype(np.float32) for space in action_spaces]
-            self._highs = [space.high.reshape(-1).astype(np.float32) for space in action_spaces]
+            self._lows = [space.low.reshape(-1).astype(np.float64) for space in action_spaces]
+            self._highs = [space.high.reshape(-1).astype(np.float64) for space in action_spaces]
+            self._mapped = [np.isfinite(lo) & np.isfinite(hi)
+                            for lo, hi in zip(self._lows, self._highs)]
             self._shapes = [space.shape for space in action_spaces]
             self._dtypes = [space.dtype for space in action_spaces]
-            low = float(min(np.min(x) for x in self._lows))
-            high = float(max(np.max(x) for x in self._highs))
+            every_mapped = all(mapped.all() for mapped in self._mapped)
+            low, high = (-1.0, 1.0) if every_mapped else (-np.inf, np.inf)
         else:
             kinds = sorted({type(space).__name__ for space in action_spaces})
             raise CmatError(
@@ -151,8 +173,11 @@ class PettingZooEnv(AutoReset):
             action_high=high,
             state_dim=probe_state_dim(env, env_id),
         )
-        self._alive: set[str] = set()
-        self._steps = 0
+        self._index = {agent: index for index, agent in enumerate(self.agents)}
+        self._live: set[str] = set()
+        """`env.agents` after the last reset or step: the agents actions go to."""
+        self._active_now = np.zeros(len(self.agents), bool)
+        """Agents in `_live` with an observation in the last reset or step."""
 
     def close(self) -> None:
         """Close the PettingZoo env."""
@@ -160,67 +185,111 @@ class PettingZooEnv(AutoReset):
         if close is not None:
             close()
 
+    def agent_name(self, index: int) -> str:
+        return self.agents[index]
+
     def _reset(self, seed: int | None) -> tuple[np.ndarray, np.ndarray]:
-        result = self.env.reset(seed=seed)
-        obs, infos = result if isinstance(result, tuple) else (result, {})
-        self._alive = set(getattr(self.env, "agents", None) or self.agents)
-        self._steps = 0
-        return self._encode(obs, infos or {})
+        with simulator_call(self.spec.env_id, "reset"):
+            result = self.env.reset(seed=seed)
+        obs, infos = result if isinstance(result, tuple) and len(result) == 2 else (result, {})
+        obs, infos = self._mapping(obs, "observations"), self._mapping(infos or {}, "infos")
+        self._live = self._live_agents(obs, {}, {})
+        return self._encode(obs, infos)
 
     def _step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, bool, bool]:
-        joint = {
-            agent: self._env_action(index, actions[index])
-            for index, agent in enumerate(self.agents)
-            if agent in self._alive
-        }
-        obs, rewards, terminations, truncations, infos = self.env.step(joint)
-        self._steps += 1
-        for agent in list(self._alive):
-            if terminations.get(agent, False) or truncations.get(agent, False):
-                self._alive.discard(agent)
-        live = getattr(self.env, "agents", None)
-        done = not self._alive or (live is not None and len(live) == 0)
-        done = done or self._steps >= self.spec.max_episode_steps
-        reward = float(np.mean([float(r) for r in rewards.values()])) if rewards else 0.0
-        won = any(bool(info.get("won", False)) for info in (infos or {}).values()
+        joint = {agent: self._env_action(self._index[agent], actions[self._index[agent]])
+                 for agent in self.agents if agent in self._live}
+        with simulator_call(self.spec.env_id, "step"):
+            result = self.env.step(joint)
+        if not isinstance(result, tuple) or len(result) != 5:
+            raise CmatError(f"{self.spec.env_id}: step must return (observations, rewards, "
+                            f"terminations, truncations, infos), got {type(result).__name__}")
+        obs, rewards, terminations, truncations, infos = (
+            self._mapping(part, name) for part, name in zip(
+                result, ("observations", "rewards", "terminations", "truncations", "infos")
+            )
+        )
+        self._live = self._live_agents(obs, terminations, truncations)
+        done = not self._live or self.episode_step >= self.spec.max_episode_steps
+        team = [self._reward(agent, value) for agent, value in rewards.items()
+                if agent in self._index]
+        reward = float(np.mean(team)) if team else 0.0
+        won = any(bool(info.get("won", False)) for info in infos.values()
                   if isinstance(info, dict))
-        obs_array, mask = self._encode(obs, infos or {})
+        obs_array, mask = self._encode(obs, infos)
         return obs_array, mask, reward, done, won
+
+    def _mapping(self, value: Any, name: str) -> dict[str, Any]:
+        if not isinstance(value, dict):
+            raise CmatError(f"{self.spec.env_id}: {name} at step {self.episode_step} of an "
+                            f"episode must be a dict keyed by agent, got {type(value).__name__}")
+        return value
+
+    def _live_agents(self, obs: dict[str, Any], terminations: dict[str, Any],
+                     truncations: dict[str, Any]) -> set[str]:
+        """`env.agents` (checked against `possible_agents`), or where the env keeps none, the
+        agents with an observation that did not terminate or truncate."""
+        live = getattr(self.env, "agents", None)
+        if live is None:
+            return {agent for agent in obs if agent in self._index
+                    and not terminations.get(agent, False) and not truncations.get(agent, False)}
+        unknown = [agent for agent in live if agent not in self._index]
+        if unknown:
+            raise CmatError(f"{self.spec.env_id}: env.agents holds {unknown[0]!r} at step "
+                            f"{self.episode_step} of an episode, which is not in possible_agents")
+        return set(live)
+
+    def _reward(self, agent: str, value: Any) -> float:
+        """A reward as a float: a number, a NumPy scalar or a size-1 array (CmatError else)."""
+        try:
+            array = np.asarray(value, np.float64)
+        except (TypeError, ValueError):
+            raise CmatError(f"{self.spec.env_id}: reward of agent {agent!r} at step "
+                            f"{self.episode_step} of an episode is not a number: {value!r}") from None
+        if array.size != 1:
+            raise CmatError(f"{self.spec.env_id}: reward of agent {agent!r} at step "
+                            f"{self.episode_step} of an episode has shape {array.shape}; expected "
+                            f"a scalar or a size-1 array")
+        return float(self._finite(array.reshape(()), "reward", self._index[agent]))
 
     def _global_state(self) -> np.ndarray:
         if self.spec.state_dim == 0:
             return np.zeros(0, np.float32)
-        state = np.asarray(self.env.state(), np.float32).reshape(-1)
+        with simulator_call(self.spec.env_id, "state"):
+            state = np.asarray(self.env.state(), np.float32).reshape(-1)
         if state.size != self.spec.state_dim:
             raise CmatError(
-                f"{self.spec.env_id}: state() returned {state.size} values, expected "
-                f"{self.spec.state_dim}"
+                f"{self.spec.env_id}: state() returned {state.size} values at step "
+                f"{self.episode_step} of an episode, expected {self.spec.state_dim}"
             )
         return state
 
     def _active(self) -> np.ndarray:
-        """The agents still in the episode (`possible_agents` order)."""
-        return np.array([agent in self._alive for agent in self.agents], bool)
+        """The live agents with an observation (`possible_agents` order)."""
+        return self._active_now.copy()
 
     def _env_action(self, index: int, action: np.ndarray) -> Any:
         if self.spec.discrete:
             return int(action) + self._action_starts[index]
         size = self._action_sizes[index]
-        own = np.asarray(action, np.float32)[:size]
-        clipped = np.clip(own, self._lows[index], self._highs[index])
-        return clipped.reshape(self._shapes[index]).astype(self._dtypes[index])
+        own = np.asarray(action, np.float64)[:size]
+        low, high, mapped = self._lows[index], self._highs[index], self._mapped[index]
+        unit = (np.clip(own, -1.0, 1.0) + 1.0) / 2.0
+        start, span = np.where(mapped, low, 0.0), np.where(mapped, high - low, 0.0)
+        sent = np.where(mapped, start + unit * span, own)
+        return np.clip(sent, low, high).reshape(self._shapes[index]).astype(self._dtypes[index])
 
     def _encode(self, obs: dict[str, Any], infos: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-        import gymnasium.spaces as spaces
-
         spec = self.spec
         obs_array = np.zeros((spec.num_agents, spec.obs_dim), np.float32)
         mask = np.zeros((spec.num_agents, spec.action_dim), bool)
+        self._active_now[:] = False
         for index, agent in enumerate(self.agents):
             size = self._action_sizes[index]
-            if agent not in self._alive or agent not in obs:
+            if agent not in self._live or agent not in obs:
                 mask[index, 0 if spec.discrete else slice(None)] = True
                 continue
+            self._active_now[index] = True
             value = obs[agent]
             agent_mask = None
             if isinstance(value, dict) and "observation" in value:
@@ -229,8 +298,7 @@ class PettingZooEnv(AutoReset):
             info = infos.get(agent)
             if agent_mask is None and isinstance(info, dict):
                 agent_mask = info.get("action_mask")
-            flat = spaces.flatten(self._obs_spaces[index], value)
-            obs_array[index, : self._obs_sizes[index]] = flat
+            obs_array[index, : self._obs_sizes[index]] = self._flat_observation(index, value)
             if not spec.discrete:
                 mask[index] = True
             elif agent_mask is None:
@@ -240,3 +308,26 @@ class PettingZooEnv(AutoReset):
                 if not mask[index].any():
                     mask[index, 0] = True
         return obs_array, mask
+
+    def _flat_observation(self, index: int, value: Any) -> np.ndarray:
+        """Agent `index`'s observation flattened by its space; CmatError where it does not fit
+        the space's shape."""
+        import gymnasium.spaces as spaces
+
+        space, agent = self._obs_spaces[index], self.agents[index]
+        where = f"{self.spec.env_id}: observation of agent {agent!r} at step {self.episode_step} " \
+                f"of an episode"
+        if isinstance(space, spaces.Box):
+            shape = np.shape(value)
+            if shape != space.shape:
+                raise CmatError(f"{where} has shape {shape}, but its observation space declares "
+                                f"{space.shape}")
+        try:
+            flat = np.asarray(spaces.flatten(space, value), np.float32).reshape(-1)
+        except Exception as error:  # the space's own flatten rejecting a malformed value
+            raise CmatError(f"{where} does not fit its space {space}: "
+                            f"{type(error).__name__}: {error}") from None
+        if flat.size != self._obs_sizes[index]:
+            raise CmatError(f"{where} flattens to {flat.size} values, but its observation space "
+                            f"declares {self._obs_sizes[index]}")
+        return flat

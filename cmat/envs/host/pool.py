@@ -1,11 +1,17 @@
 """A batch of host environments stepped together, in-process or in worker processes.
 
 Both pools take and return batches: `step(actions [E, ...])` gives a `HostTimeStep` whose fields
-have a leading environment axis. Faults do not stop a run:
-- an environment that raises in `step` is closed, rebuilt and reset; its step reports `done`
-  (reward 0, not won), so the episode counts as truncated, and a warning is logged;
+have a leading environment axis. Simulator faults do not stop a run:
+- an environment whose simulator raises in its own `reset`, `step` or `state`
+  (`SimulatorCrash`) is closed, rebuilt and reset; its step reports `done` (reward 0, not won),
+  so the episode counts as truncated, and a warning is logged. One that crashes `crash_limit`
+  times in a row (`TrainConfig.host_crash_limit`) stops the run with a `CmatError` naming it;
 - a worker process that dies (killed, crashed, out of memory) is started again with fresh
   environments; every environment it held reports `done` the same way.
+Anything else is not a simulator fault: a `CmatError` (a malformed observation or reward, a
+non-finite value) stops the run with its one-line message, and any other exception is a bug in
+cmat and surfaces as one, from a worker process too. `counters()` gives, per environment slot,
+the restarts so far and the non-finite values replaced by 0 (`host_nonfinite=warn`).
 """
 
 from __future__ import annotations
@@ -14,12 +20,13 @@ import logging
 import multiprocessing
 import multiprocessing.connection
 import signal
+import traceback
 from typing import Any
 
 import numpy as np
 
 from cmat.envs.host import make_host_env
-from cmat.envs.host.protocol import HostEnv, HostTimeStep
+from cmat.envs.host.protocol import HostEnv, HostTimeStep, SimulatorCrash
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 
@@ -27,6 +34,10 @@ log = logging.getLogger("cmat.host")
 
 RESTART_SEED_STRIDE = 1_000_003
 """A restarted environment's reset seed: its slot's seed plus this times its restart count."""
+DEFAULT_CRASH_LIMIT = 3
+"""Crashes in a row of one environment that stop the run (`TrainConfig.host_crash_limit`)."""
+COUNTERS = ("env_restarts", "env_nonfinite")
+"""Per-slot counters of `counters()` (metrics.csv columns of host runs)."""
 
 
 def stack(timesteps: list[HostTimeStep]) -> HostTimeStep:
@@ -51,50 +62,81 @@ class InProcessPool:
     """One environment per seed in `seeds`, stepped one after the other in this process."""
 
     def __init__(self, env_id: str, env_kwargs: dict[str, Any], seeds: list[int],
-                 envs: list[HostEnv] | None = None) -> None:
+                 envs: list[HostEnv] | None = None, crash_limit: int = DEFAULT_CRASH_LIMIT,
+                 nonfinite: str = "error") -> None:
         self.env_id = env_id
         self.env_kwargs = dict(env_kwargs)
+        self.crash_limit = crash_limit
+        self.nonfinite = nonfinite
         self.envs: list[HostEnv] = list(envs or [])
         self._seeds = list(seeds)
         self.envs += [self._make(index) for index in range(len(self.envs), len(seeds))]
         self.spec: EnvSpec = self.envs[0].spec
-        self._restarts = [0] * len(seeds)
-        self.faults = 0
-        """Environments restarted so far."""
+        self._restarts = np.zeros(len(seeds), np.int64)
+        self._in_a_row = np.zeros(len(seeds), np.int64)
+        self._replaced_before = np.zeros(len(seeds), np.int64)
+        """Non-finite values replaced by environments of the slot closed since."""
 
     def _make(self, index: int) -> HostEnv:
-        return make_host_env(self.env_id, seed=self._seeds[index], **self.env_kwargs)
+        return make_host_env(self.env_id, seed=self._seeds[index], nonfinite=self.nonfinite,
+                             **self.env_kwargs)
 
     def reset(self, seeds: list[int] | None = None) -> HostTimeStep:
         """Start an episode in every environment, environment i with `seeds[i]` (default: the
-        pool's seeds)."""
+        pool's seeds); one whose simulator crashes is restarted (module doc)."""
         self._seeds = list(seeds) if seeds is not None else self._seeds
-        return stack([env.reset(seed) for env, seed in zip(self.envs, self._seeds)])
+        timesteps = []
+        for index, (env, seed) in enumerate(zip(self.envs, self._seeds)):
+            try:
+                timesteps.append(env.reset(seed))
+            except SimulatorCrash as crash:
+                timesteps.append(self._restart(index, str(crash)))
+        return stack(timesteps)
 
     def step(self, actions: np.ndarray) -> HostTimeStep:
-        """Step environment i with `actions[i]`; one that raises is restarted (module doc)."""
+        """Step environment i with `actions[i]`; one whose simulator crashes is restarted
+        (module doc)."""
         timesteps = []
         for index, env in enumerate(self.envs):
             try:
                 timesteps.append(env.step(actions[index]))
-            except Exception as error:  # any simulator error: restart, don't stop the run
-                timesteps.append(self._restart(index, f"{type(error).__name__}: {error}"))
+                self._in_a_row[index] = 0
+            except SimulatorCrash as crash:
+                timesteps.append(self._restart(index, str(crash)))
         return stack(timesteps)
 
+    def counters(self) -> dict[str, np.ndarray]:
+        """Per slot: restarts so far and non-finite values replaced by 0 (`COUNTERS`)."""
+        replaced = [env.nonfinite_replaced for env in self.envs]
+        return {"env_restarts": self._restarts.copy(),
+                "env_nonfinite": self._replaced_before + np.asarray(replaced, np.int64)}
+
     def _restart(self, index: int, reason: str) -> HostTimeStep:
-        self.faults += 1
-        self._restarts[index] += 1
-        log.warning(
-            "%s: environment %d raised (%s); restarted it, its episode counts as truncated",
-            self.env_id, index, reason,
-        )
-        try:
-            self.envs[index].close()
-        except Exception:  # a broken simulator may fail to close too
-            pass
-        self.envs[index] = self._make(index)
-        seed = self._seeds[index] + RESTART_SEED_STRIDE * self._restarts[index]
-        return self.envs[index].reset(seed)._replace(reward=0.0, done=True, won=False)
+        """Rebuild and reset environment `index` until it starts, or `crash_limit` crashes in a
+        row (CmatError)."""
+        while True:
+            self._restarts[index] += 1
+            self._in_a_row[index] += 1
+            if self._in_a_row[index] >= self.crash_limit:
+                raise CmatError(
+                    f"{self.env_id}: environment {index} crashed {self._in_a_row[index]} times in "
+                    f"a row (last: {reason}); stopped (host_crash_limit={self.crash_limit})"
+                )
+            log.warning("%s: environment %d crashed (%s); restarted it, its episode counts as "
+                        "truncated", self.env_id, index, reason)
+            self._replaced_before[index] += self.envs[index].nonfinite_replaced
+            try:
+                self.envs[index].close()
+            except Exception:  # a broken simulator may fail to close too
+                pass
+            self.envs[index] = self._make(index)
+            seed = self._seeds[index] + RESTART_SEED_STRIDE * int(self._restarts[index])
+            try:
+                timestep = self.envs[index].reset(seed)
+            except SimulatorCrash as crash:
+                reason = str(crash)
+                continue
+            return timestep._replace(reward=0.0, done=True, won=False)
 
     def worker_pids(self) -> list[int]:
         return []
@@ -110,11 +152,15 @@ class InProcessPool:
 
 
 def worker_main(conn: multiprocessing.connection.Connection, env_id: str,
-                env_kwargs: dict[str, Any], seeds: list[int]) -> None:
-    """A worker process: an `InProcessPool` of one environment per seed serving its parent."""
+                env_kwargs: dict[str, Any], seeds: list[int], crash_limit: int,
+                nonfinite: str) -> None:
+    """A worker process: an `InProcessPool` of one environment per seed serving its parent.
+    Each reply is ("ok", batch, counters), ("error", a CmatError's message) or ("bug", a
+    traceback)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and closes us
     try:
-        pool = InProcessPool(env_id, env_kwargs, seeds)
+        pool = InProcessPool(env_id, env_kwargs, seeds, crash_limit=crash_limit,
+                             nonfinite=nonfinite)
     except Exception as error:
         conn.send(("error", f"{type(error).__name__}: {error}"))
         return
@@ -122,29 +168,38 @@ def worker_main(conn: multiprocessing.connection.Connection, env_id: str,
     while True:
         try:
             command, data = conn.recv()
-            if command == "step":
-                conn.send(pool.step(data))
-                continue
-            if command == "reset":
-                conn.send(pool.reset(data))
-                continue
         except (EOFError, OSError):  # the parent exited without closing us
-            pass
-        pool.close()
-        conn.close()
-        return
+            break
+        if command not in ("step", "reset"):
+            break
+        try:
+            batch = pool.step(data) if command == "step" else pool.reset(data)
+            reply: tuple = ("ok", batch, pool.counters())
+        except CmatError as error:
+            reply = ("error", str(error))
+        except Exception:
+            reply = ("bug", traceback.format_exc())
+        try:
+            conn.send(reply)
+        except (EOFError, OSError):
+            break
+    pool.close()
+    conn.close()
 
 
 class Worker:
     """One worker process and the slice of environment slots it holds."""
 
     def __init__(self, env_id: str, env_kwargs: dict[str, Any], slots: slice,
-                 seeds: list[int]) -> None:
+                 seeds: list[int], crash_limit: int, nonfinite: str) -> None:
         context = multiprocessing.get_context("spawn")
         self.slots = slots
+        self.counters = {name: np.zeros(slots.stop - slots.start, np.int64) for name in COUNTERS}
+        """The worker's last reported `InProcessPool.counters()`."""
         self.conn, child = context.Pipe()
         self.process = context.Process(
-            target=worker_main, args=(child, env_id, env_kwargs, seeds), daemon=True
+            target=worker_main, args=(child, env_id, env_kwargs, seeds, crash_limit, nonfinite),
+            daemon=True,
         )
         self.process.start()
         child.close()
@@ -173,19 +228,24 @@ class WorkerPool:
     """One environment per seed, split over `workers` processes that step their slices at once."""
 
     def __init__(self, env_id: str, env_kwargs: dict[str, Any], seeds: list[int],
-                 workers: int) -> None:
+                 workers: int, crash_limit: int = DEFAULT_CRASH_LIMIT,
+                 nonfinite: str = "error") -> None:
         self.env_id = env_id
         self.env_kwargs = dict(env_kwargs)
+        self.crash_limit = crash_limit
+        self.nonfinite = nonfinite
         self._seeds = list(seeds)
         count = len(seeds)
         bounds = np.linspace(0, count, min(workers, count) + 1).round().astype(int)
         slots = [slice(int(a), int(b)) for a, b in zip(bounds, bounds[1:])]
-        self.workers = [Worker(env_id, env_kwargs, s, self._seeds[s]) for s in slots]
+        self.workers = [self._worker(s, self._seeds[s]) for s in slots]
         self._restarts = 0
-        self.faults = 0
-        """Environments restarted because their worker died (an environment that raises is
-        restarted, and logged, inside its worker)."""
+        self._lost = {name: np.zeros(count, np.int64) for name in COUNTERS}
+        """Counters of dead workers' environments, and their environments restarted."""
         self.spec: EnvSpec | None = None
+
+    def _worker(self, slots: slice, seeds: list[int]) -> Worker:
+        return Worker(self.env_id, self.env_kwargs, slots, seeds, self.crash_limit, self.nonfinite)
 
     def reset(self, seeds: list[int] | None = None) -> HostTimeStep:
         """Start an episode in every environment, environment i with `seeds[i]` (default: the
@@ -197,6 +257,12 @@ class WorkerPool:
         """Step environment i with `actions[i]`; a dead worker is replaced (module doc)."""
         return self._all("step", lambda w: actions[w.slots])
 
+    def counters(self) -> dict[str, np.ndarray]:
+        """Per slot: restarts so far (inside workers and of dead workers) and non-finite values
+        replaced by 0 (`COUNTERS`)."""
+        return {name: self._lost[name] + np.concatenate([w.counters[name] for w in self.workers])
+                for name in COUNTERS}
+
     def _all(self, command: str, data: Any) -> HostTimeStep:
         sent = []
         for worker in self.workers:
@@ -205,37 +271,52 @@ class WorkerPool:
                 sent.append(True)
             except (OSError, ValueError):
                 sent.append(False)
-        results = []
+        replies = []
         for index, worker in enumerate(self.workers):
             try:
                 if not sent[index]:
                     raise EOFError
-                results.append(worker.conn.recv())
+                replies.append(worker.conn.recv())
             except (EOFError, OSError):
-                results.append(self._restart(index))
+                replies.append(self._restart(index))
+        results = []
+        for worker, reply in zip(self.workers, replies):
+            if reply[0] == "error":
+                raise CmatError(reply[1])
+            if reply[0] == "bug":
+                raise RuntimeError(f"a host environment worker raised:\n{reply[1]}")
+            results.append(reply[1])
+            worker.counters = reply[2]
         return concatenate(results)
 
-    def _restart(self, index: int) -> HostTimeStep:
+    def _restart(self, index: int) -> tuple:
+        """A fresh worker in place of dead worker `index`, its environments reset: the reply of
+        the command it did not answer, with every episode done."""
         old = self.workers[index]
         old.process.join(timeout=1)
         code = old.process.exitcode
         old.stop()
         count = old.slots.stop - old.slots.start
-        self.faults += count
+        for name in COUNTERS:
+            self._lost[name][old.slots] += old.counters[name]
+        self._lost["env_restarts"][old.slots] += 1
         self._restarts += 1
         log.warning(
             "%s: worker process %d died (exit code %s); restarted it, the episodes of its %d "
             "environments count as truncated", self.env_id, index, code, count,
         )
         seeds = [s + RESTART_SEED_STRIDE * self._restarts for s in self._seeds[old.slots]]
-        worker = Worker(self.env_id, self.env_kwargs, old.slots, seeds)
+        worker = self._worker(old.slots, seeds)
         self.workers[index] = worker
         worker.conn.send(("reset", seeds))
-        batch: HostTimeStep = worker.conn.recv()
-        return batch._replace(
+        reply = worker.conn.recv()
+        if reply[0] != "ok":
+            return reply
+        batch: HostTimeStep = reply[1]
+        return ("ok", batch._replace(
             reward=np.zeros_like(batch.reward), done=np.ones_like(batch.done),
             won=np.zeros_like(batch.won),
-        )
+        ), reply[2])
 
     def worker_pids(self) -> list[int]:
         """Process ids of the workers (tests kill one)."""
@@ -250,13 +331,15 @@ class WorkerPool:
 
 def make_pool(
     env_id: str, env_kwargs: dict[str, Any], seeds: list[int], workers: int,
-    envs: list[HostEnv] | None = None,
+    envs: list[HostEnv] | None = None, crash_limit: int = DEFAULT_CRASH_LIMIT,
+    nonfinite: str = "error",
 ) -> InProcessPool | WorkerPool:
     """One environment per seed, in this process (`workers` = 0) or over `workers` processes;
     `envs` are already built environments an in-process pool starts with (a worker pool closes
-    them)."""
+    them); `crash_limit` and `nonfinite` as `TrainConfig.host_crash_limit` and
+    `host_nonfinite`."""
     if workers <= 0:
-        return InProcessPool(env_id, env_kwargs, seeds, envs)
+        return InProcessPool(env_id, env_kwargs, seeds, envs, crash_limit, nonfinite)
     for env in envs or []:
         env.close()
-    return WorkerPool(env_id, env_kwargs, seeds, workers)
+    return WorkerPool(env_id, env_kwargs, seeds, workers, crash_limit, nonfinite)

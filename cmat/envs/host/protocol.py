@@ -9,11 +9,33 @@ next episode, while `reward`, `done` and `won` describe the transition that ende
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from cmat.envs.protocol import EnvSpec
+from cmat.errors import CmatError
+
+NONFINITE_POLICIES = ("error", "warn")
+"""What a host environment does with a NaN or infinite observation, reward or state
+(`TrainConfig.host_nonfinite`): stop the run with a one-line error, or replace the values by 0
+and count them (`metrics.csv` column `env_nonfinite`)."""
+
+
+class SimulatorCrash(Exception):
+    """An exception raised inside a simulator's own `reset` or `step` (not in cmat's code):
+    the pools restart that environment (`cmat.envs.host.pool`)."""
+
+
+@contextmanager
+def simulator_call(env_id: str, what: str) -> Iterator[None]:
+    """Run a call into the simulator; any exception it raises becomes a `SimulatorCrash`."""
+    try:
+        yield
+    except Exception as error:
+        raise SimulatorCrash(f"{env_id}: {what} raised {type(error).__name__}: {error}") from error
 
 
 class HostTimeStep(NamedTuple):
@@ -39,36 +61,77 @@ class HostEnv(Protocol):
     """One host simulator behind the protocol; `step` resets automatically."""
 
     spec: EnvSpec
+    nonfinite: str
+    """"error" or "warn" (`NONFINITE_POLICIES`)."""
+    nonfinite_replaced: int
+    """Non-finite values replaced by 0 so far (`nonfinite` "warn")."""
 
     def reset(self, seed: int | None = None) -> HostTimeStep: ...
 
     def step(self, actions: np.ndarray) -> HostTimeStep:
-        """`actions`: [n_agents] ints, or [n_agents, action_dim] floats already inside the Box
-        bounds of `spec` (adapters clip again to each agent's exact bounds)."""
+        """`actions`: [n_agents] ints, or [n_agents, action_dim] floats in the range of
+        `spec.action_low/high` (the PettingZoo adapter maps [-1, 1] onto each agent's Box)."""
         ...
 
     def close(self) -> None: ...
 
 
 class AutoReset:
-    """Base of the adapters: `_reset` and `_step` of one episode, auto-reset on `done`."""
+    """Base of the adapters: `_reset` and `_step` of one episode, auto-reset on `done`.
+
+    Every observation, reward and global state is checked for NaN and infinities: with
+    `nonfinite` "error" (the default) one is a `CmatError` naming the environment, the agent and
+    the step; with "warn" it is replaced by 0 and counted in `nonfinite_replaced`."""
 
     spec: EnvSpec
+    nonfinite: str = "error"
+    nonfinite_replaced: int = 0
+    """Values replaced by 0 so far (`nonfinite` "warn")."""
+    episode_step: int = 0
+    """Transitions taken in the current episode (0 at its reset)."""
 
     def reset(self, seed: int | None = None) -> HostTimeStep:
         """Start an episode (seeded where `seed` is given)."""
+        self.episode_step = 0
         obs, mask = self._reset(seed)
-        return HostTimeStep(obs, mask, 0.0, False, False, self._active(), self._global_state())
+        return self._checked(obs, mask, 0.0, False, False)
 
     def step(self, actions: np.ndarray) -> HostTimeStep:
         """Step; when the episode ends, the next one starts and its first observation returns."""
+        self.episode_step += 1
         obs, mask, reward, done, won = self._step(actions)
+        reward = self._finite(np.float32(reward), "reward", None)
         if done:
+            self.episode_step = 0
             obs, mask = self._reset(None)
-        return HostTimeStep(
-            obs, mask, float(reward), bool(done), bool(won and done), self._active(),
-            self._global_state(),
+        return self._checked(obs, mask, float(reward), bool(done), bool(won and done))
+
+    def _checked(self, obs: np.ndarray, mask: np.ndarray, reward: float, done: bool,
+                 won: bool) -> HostTimeStep:
+        if not np.isfinite(obs).all():
+            for index in range(obs.shape[0]):
+                obs[index] = self._finite(obs[index], "observation", index)
+        state = self._finite(self._global_state(), "global state", None)
+        return HostTimeStep(obs, mask, reward, done, won, self._active(), state)
+
+    def _finite(self, values: np.ndarray, what: str, agent: int | None) -> np.ndarray:
+        """`values`, or a CmatError / zeros in place of NaN and infinities (`nonfinite`)."""
+        bad = ~np.isfinite(values)
+        if not bad.any():
+            return values
+        if self.nonfinite == "warn":
+            self.nonfinite_replaced += int(bad.sum())
+            return np.where(bad, 0, values).astype(values.dtype)
+        who = "" if agent is None else f" of agent {self.agent_name(agent)!r}"
+        raise CmatError(
+            f"{self.spec.env_id}: non-finite {what}{who} at step {self.episode_step} of an "
+            f"episode ({np.asarray(values).reshape(-1)[np.flatnonzero(bad)[0]]}); fix the "
+            f"environment or set host_nonfinite=warn to replace such values by 0"
         )
+
+    def agent_name(self, index: int) -> str:
+        """The environment's name for agent `index`."""
+        return str(index)
 
     def close(self) -> None:
         """Release the simulator."""
@@ -94,6 +157,14 @@ class HostAgentIdWrapper:
         self.env = env
         self.spec = dataclasses.replace(env.spec, obs_dim=env.spec.obs_dim + env.spec.num_agents)
         self._ids = np.eye(env.spec.num_agents, dtype=np.float32)
+
+    @property
+    def nonfinite(self) -> str:
+        return self.env.nonfinite
+
+    @property
+    def nonfinite_replaced(self) -> int:
+        return self.env.nonfinite_replaced
 
     def reset(self, seed: int | None = None) -> HostTimeStep:
         """Start an episode."""
