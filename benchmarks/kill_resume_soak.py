@@ -6,10 +6,10 @@
 For each environment, in one run of this script:
 1. a reference run trains uninterrupted (in-graph environments only: host simulators restart
    their episodes on resume, so a host run cannot match one);
-2. the soak run starts the same command, and `--kills` times: waits until it has written a
-   checkpoint past the one it started from, sleeps a random part of a chunk, sends SIGKILL to
-   its process group, verifies the checkpoint left behind (header, size, sha256), and resumes
-   it with `cmat train --resume`; then it runs to the end.
+2. the soak run starts the same command, and `--kills` times: waits until it has written two
+   checkpoints past the one it started from, sends SIGKILL to its process group at a uniformly
+   random point of the next chunk, verifies the checkpoint left behind (header, size, sha256),
+   and resumes it with `cmat train --resume`; then it runs to the end.
 Checked at the end: the final checkpoint is at the run's budget; `metrics.csv` has, per kind
 and seed, exactly one row per log point, in increasing env steps; and (in-graph) every metric
 of every row equals the reference run's. Prints one line per kill and a summary table; exits 1
@@ -69,29 +69,41 @@ def run_to_end(command: list[str], log: Path) -> None:
         raise SystemExit(f"{' '.join(command)} exited {done.returncode}; see {log}")
 
 
+def wait_for_progress(process: subprocess.Popen, run: Path, past: int, deadline: float,
+                      log: Path) -> int | None:
+    """The run's checkpoint steps once past `past`; None if the process ended first."""
+    while True:
+        steps = checkpoint_steps(run)
+        if steps > past:
+            return steps
+        if process.poll() is not None:
+            return None
+        if time.monotonic() > deadline:
+            os.killpg(process.pid, signal.SIGKILL)
+            raise SystemExit(f"no checkpoint past {past} steps in time; see {log}")
+        time.sleep(0.05)
+
+
 def kill_at_random(command: list[str], run: Path, log: Path, rng: random.Random,
                    timeout: float) -> tuple[int, int, bool]:
-    """Start `command`, wait for a new checkpoint, SIGKILL it at a random later point; returns
-    the checkpoint steps before and after, and whether it was killed (it may finish first)."""
+    """Start `command`; once it has written two checkpoints past the one it started from, SIGKILL
+    it at a uniformly random point of its next chunk (its length measured between those two).
+    Returns the checkpoint steps before and after, and whether it was killed (it may finish
+    first)."""
     start = checkpoint_steps(run)
     with log.open("a") as file:
         process = subprocess.Popen(command, stdout=file, stderr=subprocess.STDOUT,
                                    start_new_session=True)
     deadline = time.monotonic() + timeout
-    seen, seen_at = start, time.monotonic()
-    while seen <= start:
-        if process.poll() is not None:
-            raise SystemExit(f"the run ended before a kill (exit {process.returncode}); see {log}")
-        if time.monotonic() > deadline:
+    first = wait_for_progress(process, run, max(start, 0), deadline, log)
+    first_at = time.monotonic()
+    second = None if first is None else wait_for_progress(process, run, first, deadline, log)
+    killed = False
+    if second is not None:
+        time.sleep(rng.uniform(0.0, time.monotonic() - first_at))
+        killed = process.poll() is None
+        if killed:
             os.killpg(process.pid, signal.SIGKILL)
-            raise SystemExit(f"no checkpoint past {start} steps within {timeout:.0f} s; see {log}")
-        time.sleep(0.05)
-        seen, seen_at = checkpoint_steps(run), time.monotonic()
-    chunk_seconds = max(0.5, seen_at - (deadline - timeout)) / 2
-    time.sleep(rng.uniform(0.0, chunk_seconds))
-    killed = process.poll() is None
-    if killed:
-        os.killpg(process.pid, signal.SIGKILL)
     process.wait()
     return start, checkpoint_steps(run), killed
 

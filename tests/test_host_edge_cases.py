@@ -232,8 +232,9 @@ def test_infinite_bounds_are_sent_unmapped() -> None:
 
 
 def test_a_policy_learns_to_hit_targets_inside_boxes_far_from_zero() -> None:
-    """Measured: 40 updates of 16 one-step episodes reach a greedy return of about -0.01
-    (0 is optimal); actions stuck at a bound would score -(1.5² + ...) ≤ -2.25."""
+    """Measured: the greedy return goes from -1.24 (about the box midpoints) to -0.002 in 40
+    updates of 64 one-step episodes (0 is optimal); actions stuck at a bound would score
+    at most -(1.5² + ...) = -2.25."""
     trainer = HostTrainer(load_config(overrides=[
         f"env={BOX}", "num_envs=16", "rollout_length=4", "total_steps=2560", "log_interval=40",
         "network.n_embd=16", "ppo.epochs=10", "ppo.lr=0.005", "ppo.clip_eps=0.2",
@@ -246,7 +247,7 @@ def test_a_policy_learns_to_hit_targets_inside_boxes_far_from_zero() -> None:
         after = trainer.evaluate(state, 4)["episode_return"]
     finally:
         trainer.close()
-    assert float(before[0]) < -0.4  # the box midpoints: (3 - 3.5)² + 1² + 0.15²
+    assert float(before[0]) < -0.4  # the box midpoints score -((3 - 3.5)² + 1² + 0.15²)
     assert float(after[0]) > -0.1
 
 
