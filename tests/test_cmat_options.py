@@ -155,6 +155,15 @@ def test_the_paper_preset_resolves_to_the_papers_values() -> None:
         load_config(overrides=["preset=fast"])
 
 
+def test_the_tuned_preset_changes_only_the_clip_and_the_target_critic() -> None:
+    tuned, default = load_config(overrides=["preset=tuned"]), load_config()
+    assert (tuned.ppo.joint_clip, tuned.ppo.target_tau) == ("per_agent", 1.0)
+    assert dataclasses.replace(tuned.ppo, joint_clip="joint", target_tau=0.1) == default.ppo
+    assert dataclasses.replace(tuned, ppo=default.ppo, preset=None) == default
+    with pytest.raises(CmatError, match="unknown preset 'tuned' for mat; available: paper"):
+        load_config(overrides=["preset=tuned", "algo=mat"])
+
+
 @pytest.mark.parametrize("override", ["ppo.joint_clip=geometric", "ppo.entropy_reduction=max",
                                       "ppo.target_kl=0", "ppo.target_kl=-1"])
 def test_bad_option_values_are_rejected(override: str) -> None:
