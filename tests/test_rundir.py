@@ -11,7 +11,7 @@ from matplotlib.image import imread
 
 from cmat.config import TrainConfig
 from cmat.errors import CmatError
-from cmat.experiments.plots import plot_runs
+from cmat.experiments.plots import plot_runs, run_names
 from cmat.rundir import COLUMNS, RunDir
 
 
@@ -151,6 +151,17 @@ def test_plot_draws_a_win_rate_panel_only_where_a_run_defines_it(tmp_path: Path)
     plot_runs([no_win.path, with_win.path], tmp_path / "out" / "two.png")
     one, two = imread(tmp_path / "one.png"), imread(tmp_path / "out" / "two.png")
     assert one.shape[0] == two.shape[0] and two.shape[1] == 2 * one.shape[1]
+
+
+def test_runs_with_the_same_directory_name_get_labels_that_tell_them_apart(
+    tmp_path: Path
+) -> None:
+    assert run_names([tmp_path / "grid/a/cmat-s0-2", tmp_path / "grid/b/cmat-s0-2"]) == [
+        "a/cmat-s0-2", "b/cmat-s0-2"]
+    assert run_names([tmp_path / "one", tmp_path / "two"]) == ["one", "two"]
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "grid/a/cmat-s0-2")
+    assert run_names([link, tmp_path / "grid/a/cmat-s0-2"]) == ["link", "cmat-s0-2"]
 
 
 def test_plot_of_a_run_without_evaluations_is_an_error(tmp_path: Path) -> None:

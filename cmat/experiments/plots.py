@@ -30,13 +30,24 @@ def eval_curve(rows: list[dict[str, str]], column: str, kind: str = "eval") -> C
     return steps, np.array([v.mean() for v in values]), np.array([v.std() for v in values])
 
 
+def run_names(run_dirs: list[Path]) -> list[str]:
+    """The shortest trailing part of each path (as given, not resolved) that tells the runs
+    apart: `per_agent_clip/cmat-s0-2` and `tau_one/cmat-s0-2` rather than `cmat-s0-2` twice."""
+    parts = [Path(path).absolute().parts for path in run_dirs]
+    for depth in range(1, max((len(p) for p in parts), default=1) + 1):
+        names = ["/".join(p[-depth:]) for p in parts]
+        if len(set(names)) == len(names):
+            return names
+    return [str(path) for path in run_dirs]
+
+
 def plot_runs(run_dirs: list[Path], out: Path) -> None:
     """Eval episode return (and win rate, where any run defines it) against env steps per seed."""
     panels: dict[str, list[tuple[str, Curve]]] = {"episode_return": [], "win_rate": []}
-    for path in run_dirs:
+    for path, name in zip(run_dirs, run_names(run_dirs)):
         run = RunDir.open(path)
         config, rows = run.config(), run.read_metrics()
-        label = f"{config.env} {config.algo} ({run.path.resolve().name})"
+        label = f"{config.env} {config.algo} ({name})"
         returns = eval_curve(rows, "episode_return")
         if returns is None:
             raise CmatError(f"no evaluation results in {run.path}")
@@ -70,35 +81,59 @@ DIAGNOSTIC_PANELS = (
 """Panels of `plot_diagnostics`: title and the train columns drawn (a trailing _ is a prefix)."""
 
 
+LINE_STYLES = ("-", "--", ":", "-.")
+
+
 def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
     """Per-update training diagnostics of run directories (mean over seeds, ±1 std shaded):
     joint and per-agent clip fraction and approximate KL, explained variance of the value,
-    entropy (mean and per agent) and the gradient norm of each parameter block."""
+    entropy (mean and per agent) and the gradient norm of each parameter block.
+
+    One colour per run (legend under the figure); within a panel, up to four columns are told
+    apart by line style (panel legend). Panels with more columns than that (one per agent or
+    per block) name each column only when a single run is drawn; with several, their lines
+    share the run's colour."""
     runs = []
-    for path in run_dirs:
+    for path, name in zip(run_dirs, run_names(run_dirs)):
         run = RunDir.open(path)
-        runs.append((f"{run.config().algo} ({run.path.resolve().name})", run.read_metrics()))
-    figure = Figure(figsize=(18, 8), layout="constrained")
+        runs.append((f"{run.config().algo} ({name})", run.read_metrics()))
+    colours = [f"C{index % 10}" for index in range(len(runs))]
+    figure = Figure(figsize=(18, 9), layout="constrained")
     all_axes = figure.subplots(2, 3).reshape(-1)
     drawn = 0
     for axes, (title, wanted) in zip(all_axes, DIAGNOSTIC_PANELS):
-        for label, rows in runs:
-            columns = list(rows[0]) if rows else []
-            for column in [c for c in columns for w in wanted
-                           if (c.startswith(w) if w.endswith("_") else c == w)]:
+        found = [[c for c in (list(rows[0]) if rows else []) for w in wanted
+                  if (c.startswith(w) if w.endswith("_") else c == w)] for _, rows in runs]
+        names = list(dict.fromkeys(column for columns in found for column in columns))
+        styled = len(names) <= len(LINE_STYLES)
+        for (label, rows), columns, colour in zip(runs, found, colours):
+            for column in columns:
                 curve = eval_curve(rows, column, kind="train")
                 if curve is None:
                     continue
                 steps, mean, std = curve
-                (line,) = axes.plot(steps, mean, label=f"{label} {column}")
-                axes.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+                style = LINE_STYLES[names.index(column)] if styled else "-"
+                tag = column if styled or len(runs) == 1 else None
+                axes.plot(steps, mean, linestyle=style, color=colour if len(runs) > 1 else None,
+                          linewidth=1.5 if styled else 0.8, label=tag)
+                axes.fill_between(steps, mean - std, mean + std, color=axes.lines[-1].get_color(),
+                                  alpha=0.15 if styled else 0.05)
                 drawn += 1
         axes.set_title(title)
         axes.set_xlabel("env steps per seed")
         axes.grid(alpha=0.3)
-        if axes.lines:
-            axes.legend(fontsize="x-small")
+        if axes.lines and (styled or len(runs) == 1):
+            handles, labels = axes.get_legend_handles_labels()
+            unique = dict(zip(labels, handles))
+            if len(runs) > 1:  # the panel legend names line styles; colours name runs
+                unique = {column: axes.plot([], [], linestyle=LINE_STYLES[i], color="0.3")[0]
+                          for i, column in enumerate(names)}
+            axes.legend(unique.values(), unique.keys(), fontsize="x-small")
     if drawn == 0:
         raise CmatError("no training diagnostics in " + ", ".join(str(p) for p in run_dirs))
+    if len(runs) > 1:
+        handles = [figure.axes[0].plot([], [], color=colour)[0] for colour in colours]
+        figure.legend(handles, [label for label, _ in runs], loc="outside lower center",
+                      ncol=min(len(runs), 4), fontsize="small")
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(out, dpi=100)
