@@ -420,6 +420,7 @@ def test_halfcheetah_6x1_through_the_cli(tmp_path: Path, capsys: pytest.CaptureF
         rows = list(csv.DictReader(file))
     assert [(r["kind"], r["env_steps"]) for r in rows] == [("train", "400"), ("eval", "400")]
     assert all(r["win_rate"] == "nan" for r in rows)
+    assert (float(rows[0]["env_restarts"]), float(rows[0]["env_nonfinite"])) == (0, 0)
     assert np.isfinite(float(rows[1]["episode_return"]))
     capsys.readouterr()
     assert main(["eval", "--run", str(out), "--episodes", "1"]) == 0
