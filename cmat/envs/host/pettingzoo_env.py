@@ -221,8 +221,7 @@ class PettingZooEnv(AutoReset):
 
     def _mapping(self, value: Any, name: str) -> dict[str, Any]:
         if not isinstance(value, dict):
-            raise CmatError(f"{self.spec.env_id}: {name} at step {self.episode_step} of an "
-                            f"episode must be a dict keyed by agent, got {type(value).__name__}")
+            raise CmatError(f"{self.spec.env_id}: {name} {self.at_step} must be a dict keyed by agent, got {type(value).__name__}")
         return value
 
     def _live_agents(self, obs: dict[str, Any], terminations: dict[str, Any],
@@ -235,8 +234,8 @@ class PettingZooEnv(AutoReset):
                     and not terminations.get(agent, False) and not truncations.get(agent, False)}
         unknown = [agent for agent in live if agent not in self._index]
         if unknown:
-            raise CmatError(f"{self.spec.env_id}: env.agents holds {unknown[0]!r} at step "
-                            f"{self.episode_step} of an episode, which is not in possible_agents")
+            raise CmatError(f"{self.spec.env_id}: env.agents holds {unknown[0]!r} {self.at_step}, "
+                            f"which is not in possible_agents")
         return set(live)
 
     def _reward(self, agent: str, value: Any) -> float:
@@ -244,12 +243,11 @@ class PettingZooEnv(AutoReset):
         try:
             array = np.asarray(value, np.float64)
         except (TypeError, ValueError):
-            raise CmatError(f"{self.spec.env_id}: reward of agent {agent!r} at step "
-                            f"{self.episode_step} of an episode is not a number: {value!r}") from None
+            raise CmatError(f"{self.spec.env_id}: reward of agent {agent!r} {self.at_step} is "
+                            f"not a number: {value!r}") from None
         if array.size != 1:
-            raise CmatError(f"{self.spec.env_id}: reward of agent {agent!r} at step "
-                            f"{self.episode_step} of an episode has shape {array.shape}; expected "
-                            f"a scalar or a size-1 array")
+            raise CmatError(f"{self.spec.env_id}: reward of agent {agent!r} {self.at_step} has "
+                            f"shape {array.shape}; expected a scalar or a size-1 array")
         return float(self._finite(array.reshape(()), "reward", self._index[agent]))
 
     def _global_state(self) -> np.ndarray:
@@ -259,8 +257,8 @@ class PettingZooEnv(AutoReset):
             state = np.asarray(self.env.state(), np.float32).reshape(-1)
         if state.size != self.spec.state_dim:
             raise CmatError(
-                f"{self.spec.env_id}: state() returned {state.size} values at step "
-                f"{self.episode_step} of an episode, expected {self.spec.state_dim}"
+                f"{self.spec.env_id}: state() returned {state.size} values {self.at_step}, "
+                f"expected {self.spec.state_dim}"
             )
         return state
 
@@ -315,8 +313,7 @@ class PettingZooEnv(AutoReset):
         import gymnasium.spaces as spaces
 
         space, agent = self._obs_spaces[index], self.agents[index]
-        where = f"{self.spec.env_id}: observation of agent {agent!r} at step {self.episode_step} " \
-                f"of an episode"
+        where = f"{self.spec.env_id}: observation of agent {agent!r} {self.at_step}"
         if isinstance(space, spaces.Box):
             shape = np.shape(value)
             if shape != space.shape:

@@ -124,10 +124,15 @@ class AutoReset:
             return np.where(bad, 0, values).astype(values.dtype)
         who = "" if agent is None else f" of agent {self.agent_name(agent)!r}"
         raise CmatError(
-            f"{self.spec.env_id}: non-finite {what}{who} at step {self.episode_step} of an "
-            f"episode ({np.asarray(values).reshape(-1)[np.flatnonzero(bad)[0]]}); fix the "
+            f"{self.spec.env_id}: non-finite {what}{who} {self.at_step} "
+            f"({np.asarray(values).reshape(-1)[np.flatnonzero(bad)[0]]}); fix the "
             f"environment or set host_nonfinite=warn to replace such values by 0"
         )
+
+    @property
+    def at_step(self) -> str:
+        """Where in the episode the adapter is, for error messages."""
+        return f"at step {self.episode_step} of an episode"
 
     def agent_name(self, index: int) -> str:
         """The environment's name for agent `index`."""
