@@ -153,19 +153,16 @@ def train_command(args: argparse.Namespace) -> None:
         config = run_dir.config()
         if args.steps is not None:
             config = validate(dataclasses.replace(config, total_steps=args.steps))
-        trainer = build_trainer(config)
-    else:
-        flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds,
-                 "preset": args.preset}
-        explicit = [f"{key}={value}" for key, value in flags.items() if value is not None]
-        config = load_config(args.config, [*args.set, *explicit])
-        trainer = build_trainer(config)
-        out = RunDir.check_free(args.out or default_out(config)).path
-        start = trainer.init()  # an environment that fails at reset leaves no run directory
-        run_dir = RunDir.create(out, config)
-        train_into(trainer, run_dir, resume=False, start=start)
+        train_into(build_trainer(config), run_dir, resume=True)
         return
-    train_into(trainer, run_dir, resume=True)
+    flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds,
+             "preset": args.preset}
+    explicit = [f"{key}={value}" for key, value in flags.items() if value is not None]
+    config = load_config(args.config, [*args.set, *explicit])
+    trainer = build_trainer(config)
+    out = RunDir.check_free(args.out or default_out(config)).path
+    start = trainer.init()  # an environment that fails at reset leaves no run directory
+    train_into(trainer, RunDir.create(out, config), resume=False, start=start)
 
 
 def train_into(
