@@ -72,7 +72,7 @@ def policy_step(
     global_state: jax.Array | None = None,
 ) -> tuple[jax.Array, ActResult, jax.Array]:
     """Sample actions for every environment of every seed ([seeds, envs, ...]); returns the
-    seeds' next keys, what `act` returned, and the actions to send (clipped to the Box).
+    seeds' next keys, what `act` returned, and the actions to send (`env_actions`).
     `global_state` [seeds, envs, state_dim] may be left out where the env has none."""
     envs = obs.shape[1]
     if global_state is None:

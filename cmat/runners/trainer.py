@@ -120,8 +120,9 @@ def init_state(setup: TrainSetup, rng: jax.Array) -> TrainerState:
 
 
 def env_actions(spec: EnvSpec, actions: jax.Array) -> jax.Array:
-    """Actions as sent to the simulator: continuous ones clipped to the Box bounds (the stored
-    log-probability stays that of the unclipped sample)."""
+    """Actions as sent to the environment: continuous ones clipped to the spec's action range
+    (host adapters then map it onto each agent's Box; the stored log-probability stays that of
+    the unclipped sample)."""
     if spec.discrete:
         return actions
     return jnp.clip(actions, spec.action_low, spec.action_high)
