@@ -16,7 +16,9 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cmat.config import FINETUNE_MODES, TrainConfig, load_config, resolve_iterations, validate
+from cmat.config import (
+    FINETUNE_MODES, TrainConfig, resolve_config, resolve_iterations, to_yaml, validate,
+)
 from cmat.errors import CmatError
 from cmat.experiments.plots import plot_diagnostics, plot_runs
 from cmat.rundir import RunDir
@@ -53,6 +55,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run directory (default runs/<env>-<timestamp>)")
     train.add_argument("--resume", type=Path, metavar="DIR",
                        help="continue the run in DIR (only --steps may be given with it)")
+    train.add_argument("--dry-run", action="store_true",
+                       help="print the resolved config, each value with its source (default, "
+                            "suite, algorithm, preset, file, command line), and the "
+                            "environment's agents and actions; train nothing")
     train.set_defaults(handler=train_command)
 
     evaluate = commands.add_parser("eval", help="greedy evaluation of a run's checkpoint")
@@ -158,11 +164,28 @@ def train_command(args: argparse.Namespace) -> None:
     flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds,
              "preset": args.preset}
     explicit = [f"{key}={value}" for key, value in flags.items() if value is not None]
-    config = load_config(args.config, [*args.set, *explicit])
+    config, sources = resolve_config(args.config, [*args.set, *explicit])
+    if args.dry_run:
+        description = describe_env(config)
+        print(to_yaml(config, sources), end="")
+        print(f"# {description}")
+        return
     trainer = build_trainer(config)
     out = RunDir.check_free(args.out or default_out(config)).path
     start = trainer.init()  # an environment that fails at reset leaves no run directory
-    train_into(trainer, RunDir.create(out, config), resume=False, start=start)
+    train_into(trainer, RunDir.create(out, config, sources), resume=False, start=start)
+
+
+def describe_env(config: TrainConfig) -> str:
+    """One line on the environment `config` names: agents, observation size, actions.
+
+    Raises CmatError where it cannot be built (unknown id, missing suite package)."""
+    spec = build_trainer(config).env_spec
+    actions = (f"{spec.action_dim} discrete actions" if spec.discrete
+               else f"{spec.action_dim}-dimensional continuous actions")
+    return (f"{config.env}: {spec.num_agents} agents, observations of size {spec.obs_dim}, "
+            f"{actions}; {config.budget_steps:,} env steps per seed in "
+            f"{config.num_updates:,} updates of {config.steps_per_update:,} steps")
 
 
 def train_into(
@@ -236,12 +259,13 @@ def finetune_command(args: argparse.Namespace) -> None:
         raise CmatError(f"--steps must be > 0, got {args.steps}")
     source_dir = RunDir.open(args.source)
     source_config = source_dir.config()
-    config = finetune_config(source_config, source_dir.path, args.mode, args.steps, args.set)
+    config, sources = finetune_config(source_config, source_dir.path, args.mode, args.steps,
+                                      args.set, source_dir.sources())
     data, source_steps = source_dir.load_checkpoint()
     trainer = build_trainer(config)
     state = finetune_start(trainer, build_trainer(source_config), data)
     out = args.out or default_out(config)
-    run_dir = RunDir.create(out, config)
+    run_dir = RunDir.create(out, config, sources)
     print(f"fine-tuning ({args.mode}) from {source_dir.path} at {source_steps} env steps",
           file=sys.stderr)
     train_into(trainer, run_dir, resume=False, start=state)

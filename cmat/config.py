@@ -327,40 +327,54 @@ def resolve_iterations(m: int | str | None, num_agents: int) -> int:
     return num_agents * numerator // denominator
 
 
+ConfigSources = dict[str, str]
+"""Where each value of a config came from: dotted field name (`ppo.lr`; `env_kwargs` as one
+field) -> 'default', 'suite NAME', 'algorithm NAME', 'preset NAME', 'file PATH',
+'command line', or what else set it (`RunDir` writes them as comments in config.yaml)."""
+
+NESTED_FIELDS = ("network", "ppo")
+
+
 def load_config(
     yaml_file: Path | None = None,
     overrides: list[str] | tuple[str, ...] = (),
     base: TrainConfig | None = None,
 ) -> TrainConfig:
-    """Merge defaults (or `base`), the algorithm's reference defaults (its class's
-    `reference_defaults`), a YAML file and `key=value` overrides into a checked config."""
+    """`resolve_config` without the sources."""
+    return resolve_config(yaml_file, overrides, base)[0]
+
+
+def resolve_config(
+    yaml_file: Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    base: TrainConfig | None = None,
+    base_sources: ConfigSources | None = None,
+) -> tuple[TrainConfig, ConfigSources]:
+    """A checked config and where each value came from. Layers, later ones winning: the
+    dataclass defaults (or `base`, whose values keep `base_sources`), the environment suite's
+    settings (cmat.envs.suites), the algorithm's reference defaults (its class's
+    `reference_defaults`), its preset, a YAML file, then `key=value` overrides.
+
+    Raises CmatError for an unreadable file, a malformed override, an unknown preset or field,
+    and every check of `validate`."""
     schema = OmegaConf.structured(base if base is not None else TrainConfig)
-    layers = [schema]
+    layers: list[tuple[str, Any]] = []
     try:
         if yaml_file is not None:
             text = Path(yaml_file).read_text()
             loaded = yaml.safe_load(text) or {}
             if not isinstance(loaded, dict):
                 raise CmatError(f"config file {yaml_file} must hold a mapping of keys to values")
-            layers.append(OmegaConf.create(loaded))
+            layers.append((f"file {yaml_file}", OmegaConf.create(loaded)))
         for item in overrides:
             if "=" not in item:
                 raise CmatError(f"override {item!r} must look like key=value")
         if overrides:
-            layers.append(OmegaConf.from_dotlist(list(overrides)))
-        merged = OmegaConf.merge(*layers)
-        algo, preset = merged.algo, merged.preset
-        if base is None and algo in ALGORITHMS:
-            from cmat.algorithms import algorithm_presets, reference_defaults
-
-            layers.insert(1, OmegaConf.create(reference_defaults(algo)))
-            if preset is not None:
-                presets = algorithm_presets(algo)
-                if preset not in presets:
-                    raise CmatError(f"unknown preset {preset!r} for {algo}; available: "
-                                    f"{', '.join(presets) or 'none'}")
-                layers.insert(2, OmegaConf.create(presets[preset]))
-        config = OmegaConf.to_object(OmegaConf.merge(*layers))
+            layers.append(("command line", OmegaConf.from_dotlist(list(overrides))))
+        merged = OmegaConf.merge(schema, *(layer for _, layer in layers))
+        if base is None:
+            layers[:0] = named_layers(merged.env, merged.algo, merged.preset)
+        config = OmegaConf.to_object(OmegaConf.merge(schema, *(layer for _, layer in layers)))
     except FileNotFoundError:
         raise CmatError(f"config file not found: {yaml_file}") from None
     except yaml.YAMLError as error:
@@ -368,11 +382,95 @@ def load_config(
     except OmegaConfBaseException as error:
         raise CmatError(f"invalid config: {one_line(error)}") from None
     assert isinstance(config, TrainConfig)
-    return validate(config)
+    sources = dict.fromkeys(field_names(), "default")
+    sources.update(base_sources or {})
+    for label, layer in layers:
+        sources.update(dict.fromkeys(layer_fields(OmegaConf.to_container(layer)), label))
+    return validate(config), sources
 
 
-def to_yaml(config: TrainConfig) -> str:
-    return yaml.safe_dump(asdict(config), sort_keys=False)
+def named_layers(env: str, algo: str, preset: str | None) -> list[tuple[str, Any]]:
+    """The suite, algorithm and preset layers (label, values) for `env`, `algo` and `preset`.
+
+    Raises CmatError for a preset the algorithm does not declare."""
+    from cmat.envs.suites import SUITES
+
+    layers: list[tuple[str, Any]] = []
+    suite = env.partition(":")[0]
+    if suite in SUITES:
+        layers.append((f"suite {suite}", OmegaConf.create(SUITES[suite].settings)))
+    if algo in ALGORITHMS:
+        from cmat.algorithms import algorithm_presets, reference_defaults
+
+        layers.append((f"algorithm {algo}", OmegaConf.create(reference_defaults(algo))))
+        if preset is not None:
+            presets = algorithm_presets(algo)
+            if preset not in presets:
+                raise CmatError(f"unknown preset {preset!r} for {algo}; available: "
+                                f"{', '.join(presets) or 'none'}")
+            layers.append((f"preset {preset}", OmegaConf.create(presets[preset])))
+    return layers
+
+
+def field_names() -> list[str]:
+    """Every field of TrainConfig by dotted name (`ppo.lr`; `env_kwargs` as one field)."""
+    return layer_fields(asdict(TrainConfig()))
+
+
+def layer_fields(values: Any) -> list[str]:
+    """The dotted field names a config layer (a nested mapping) sets."""
+    if not isinstance(values, dict):
+        return []
+    names: list[str] = []
+    for key, value in values.items():
+        if key in NESTED_FIELDS and isinstance(value, dict):
+            names += [f"{key}.{inner}" for inner in value]
+        else:
+            names.append(str(key))
+    return names
+
+
+def to_yaml(config: TrainConfig, sources: ConfigSources | None = None) -> str:
+    """The config as YAML (read back by `from_yaml`); with `sources`, every value carries its
+    source as a comment (`lr: 5.0e-05  # suite mamujoco`)."""
+    if sources is None:
+        return yaml.safe_dump(asdict(config), sort_keys=False)
+    lines = [
+        "# Resolved run config. Each value's comment says where it came from: default (the",
+        "# dataclasses in cmat/config.py), suite (cmat/envs/suites.py), algorithm (its",
+        "# reference_defaults), preset, file, command line.",
+    ]
+    for key, value in asdict(config).items():
+        if key in NESTED_FIELDS:
+            lines.append(f"{key}:")
+            lines += [source_line(f"  {inner}", item, sources.get(f"{key}.{inner}"))
+                      for inner, item in value.items()]
+        else:
+            lines.append(source_line(key, value, sources.get(key)))
+    return "\n".join(lines) + "\n"
+
+
+def source_line(key: str, value: Any, source: str | None) -> str:
+    text = yaml.safe_dump(value, default_flow_style=True, width=1 << 30)
+    text = text.removesuffix("\n...\n").rstrip("\n")
+    return f"{key}: {text}" + (f"  # {source}" if source else "")
+
+
+def read_sources(text: str) -> ConfigSources:
+    """The sources written by `to_yaml` into a config.yaml (empty for one written without)."""
+    sources: ConfigSources = {}
+    section = ""
+    for line in text.splitlines():
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        indented = line.startswith(" ")
+        key, _, rest = line.strip().partition(":")
+        if not indented:
+            section = key if not rest.strip() else ""
+        value, marker, source = rest.rpartition("  # ")
+        if marker and value.strip():
+            sources[f"{section}.{key}" if indented and section else key] = source.strip()
+    return sources
 
 
 def from_yaml(text: str) -> TrainConfig:

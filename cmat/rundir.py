@@ -29,7 +29,7 @@ from typing import Mapping
 
 from tensorboardX import SummaryWriter
 
-from cmat.config import TrainConfig, from_yaml, to_yaml
+from cmat.config import ConfigSources, TrainConfig, from_yaml, read_sources, to_yaml
 from cmat.errors import CmatError
 
 LOSS_COLUMNS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac")
@@ -77,11 +77,14 @@ class RunDir:
         return self.path / "curve.png"
 
     @classmethod
-    def create(cls, path: Path, config: TrainConfig) -> RunDir:
-        """Start a new run in `path`, which must not hold one already."""
+    def create(
+        cls, path: Path, config: TrainConfig, sources: ConfigSources | None = None
+    ) -> RunDir:
+        """Start a new run in `path`, which must not hold one already; config.yaml names each
+        value's source where `sources` is given."""
         run = cls.check_free(path)
         run.path.mkdir(parents=True, exist_ok=True)
-        run.write_config(config)
+        run.write_config(config, sources)
         return run
 
     @classmethod
@@ -108,8 +111,12 @@ class RunDir:
     def config(self) -> TrainConfig:
         return from_yaml(self.config_path.read_text())
 
-    def write_config(self, config: TrainConfig) -> None:
-        atomic_write(self.config_path, to_yaml(config).encode())
+    def sources(self) -> ConfigSources:
+        """Where each value of config.yaml came from (empty for a run that did not record it)."""
+        return read_sources(self.config_path.read_text())
+
+    def write_config(self, config: TrainConfig, sources: ConfigSources | None = None) -> None:
+        atomic_write(self.config_path, to_yaml(config, sources).encode())
 
     def save_checkpoint(self, data: bytes, env_steps: int) -> None:
         header = {"env_steps": env_steps, "size": len(data), "sha256": sha256(data)}

@@ -60,6 +60,9 @@ def test_train_writes_a_complete_run_directory(trained: Path) -> None:
         load_config(overrides=TINY), env="matrix:fig1", total_steps=2000, seeds=2
     ))
     assert RunDir.open(trained).config() == expected
+    sources = RunDir.open(trained).sources()
+    assert sources["env"] == sources["ppo.epochs"] == sources["total_steps"] == "command line"
+    assert sources["ppo.lr"] == "default" and sources["ppo.target_tau"] == "default"
 
     written = rows(trained)
     chunks = range(CHUNK_STEPS, 2000 + 1, CHUNK_STEPS)
@@ -128,6 +131,8 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
     with (run_copy / "metrics.csv").open("a") as file:
         file.write("eval,0,3000,99.0,,,,,,\neval,1,30")
     assert main(["train", "--resume", str(run_copy), "--steps", "3000"]) == 0
+    assert RunDir.open(run_copy).sources()["total_steps"] == "command line (--resume --steps)"
+    assert RunDir.open(run_copy).sources()["num_envs"] == "command line"
 
     assert (run_copy / "metrics.csv").read_bytes().startswith(original)
     written = rows(run_copy)

@@ -155,6 +155,15 @@ def test_the_paper_preset_resolves_to_the_papers_values() -> None:
         load_config(overrides=["preset=fast"])
 
 
+def test_the_paper_preset_takes_mats_column_of_the_suite() -> None:
+    mujoco = load_config(overrides=["preset=paper", "env=mamujoco:HalfCheetah-6x1"])
+    assert (mujoco.ppo.lr, mujoco.ppo.epochs, mujoco.ppo.num_minibatches) == (5e-5, 10, 40)
+    assert (mujoco.ppo.ent_coef, mujoco.ppo.max_grad_norm) == (0.001, 0.5)
+    assert (mujoco.num_envs, mujoco.ppo.target_tau, mujoco.ppo.clip_eps) == (8, 0.1, 0.05)
+    football = load_config(overrides=["preset=paper", "env=grf:academy_3_vs_1_with_keeper"])
+    assert (football.rollout_length, football.ppo.epochs, football.num_envs) == (200, 10, 8)
+
+
 def test_the_tuned_preset_changes_only_the_clip_and_the_target_critic() -> None:
     tuned, default = load_config(overrides=["preset=tuned"]), load_config()
     assert (tuned.ppo.joint_clip, tuned.ppo.target_tau) == ("per_agent", 1.0)

@@ -70,6 +70,10 @@ def test_finetuning_trains_exactly_the_named_blocks(
     assert (config.finetune, config.finetune_from, config.total_steps) == (mode, str(base), 500)
     recorded = yaml.safe_load((out / "config.yaml").read_text())
     assert recorded["finetune"] == mode and recorded["finetune_from"] == str(base)
+    sources = RunDir.open(out).sources()
+    assert sources["finetune"] == sources["total_steps"] == "cmat finetune"
+    assert sources["env"] == "command line" and sources["ppo.clip_eps"] == "default"
+    assert sources["ppo.lr"] == ("command line" if mode == "action" else "default")
     assert RunDir.open(out).load_checkpoint()[1] == 500
     assert {r["env_steps"] for r in RunDir.open(out).read_metrics()} == {"500"}
 

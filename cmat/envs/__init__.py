@@ -15,14 +15,13 @@ import jax
 import jax.numpy as jnp
 
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
+from cmat.envs.suites import ENV_PREFIXES, HOST_PREFIXES
 from cmat.errors import CmatError
 
-__all__ = ["ENV_PREFIXES", "AgentIdWrapper", "EnvSpec", "MarlEnv", "TimeStep", "make_env"]
+__all__ = [
+    "ENV_PREFIXES", "HOST_PREFIXES", "AgentIdWrapper", "EnvSpec", "MarlEnv", "TimeStep", "make_env",
+]
 
-HOST_PREFIXES = ("pettingzoo", "mamujoco", "grf")
-"""Host suites (cmat.envs.host): stepped in Python by cmat.runners.host, not built here."""
-ENV_PREFIXES = ("matrix", "smax", "mpe", *HOST_PREFIXES)
-"""Suites an environment id may name before the colon."""
 
 
 class AgentIdWrapper:

@@ -214,8 +214,8 @@ def make_run(
     try:
         if variant.finetune is not None:
             assert base is not None and base.config is not None
-            run.config = finetune_config(base.config, base.path, variant.finetune,
-                                         variant.steps or env.steps, variant.overrides)
+            run.config, _ = finetune_config(base.config, base.path, variant.finetune,
+                                            variant.steps or env.steps, variant.overrides)
         else:
             explicit = [f"env={env.id}", f"algo={algo}",
                         f"total_steps={variant.steps or env.steps}", f"seeds={seeds}",

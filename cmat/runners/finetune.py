@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import jax
 
-from cmat.config import TrainConfig, load_config, validate
+from cmat.config import ConfigSources, TrainConfig, resolve_config, validate
 from cmat.errors import CmatError
 
 if TYPE_CHECKING:
@@ -33,14 +33,16 @@ def finetune_config(
     mode: str,
     steps: int | None = None,
     overrides: list[str] | tuple[str, ...] = (),
-) -> TrainConfig:
+    source_sources: ConfigSources | None = None,
+) -> tuple[TrainConfig, ConfigSources]:
     """The source run's config with the fine-tuning stage, its budget and `key=value` overrides
-    (e.g. a lower ppo.lr) applied."""
+    (e.g. a lower ppo.lr) applied, and each value's source (`source_sources`, the source run's,
+    for what it keeps)."""
     if source.algo != "cmat":
         raise CmatError(
             f"fine-tuning freezes CMAT's blocks; {source_dir} is a {source.algo!r} run"
         )
-    config = load_config(None, overrides, base=source)
+    config, sources = resolve_config(None, overrides, base=source, base_sources=source_sources)
     changed = [name for name in FIXED_FIELDS if getattr(config, name) != getattr(source, name)]
     if changed:
         raise CmatError(
@@ -53,7 +55,11 @@ def finetune_config(
         finetune_from=str(source_dir),
         total_steps=steps if steps is not None else config.total_steps,
     )
-    return validate(config)
+    stage = "cmat finetune"
+    sources.update(finetune=stage, finetune_from=stage)
+    if steps is not None:
+        sources["total_steps"] = stage
+    return validate(config), sources
 
 
 def finetune_start(trainer: Trainer, source_trainer: Trainer, data: bytes) -> TrainerState:

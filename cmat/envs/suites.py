@@ -1,0 +1,78 @@
+"""Benchmark suites: the environment-id prefixes cmat knows and each suite's default settings.
+
+A suite's settings are the config layer between the dataclass defaults and the algorithm's
+reference defaults (`cmat.config.load_config`): the reference MAT hyper-parameters of that
+benchmark family (shared/reference/README.md, from MAT's train scripts) and the budget a user
+of the suite expects. `cmat train --env mamujoco:HalfCheetah-6x1` therefore trains with MAT's
+MA-MuJoCo settings without a `--set`; the run's config.yaml names the suite as the source of
+each value it set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+PAPER_BUDGET = 10_000_000
+"""Env steps per seed of every task in the paper's experiments (MAT's budget)."""
+
+MATRIX_BUDGET = 4_000
+"""Env steps per seed of a matrix game at 16 envs × 25 steps and 5 epochs: twice the least
+budget measured to suffice. On matrix:fig1 every method ends at the optimum in 10 of 10 seeds at
+2,000 steps, CMAT in 2 of 10 at 1,000 (benchmarks/matrix_optimum.py --steps N, README
+"Defaults per suite")."""
+
+SMAC_SETTINGS: dict[str, Any] = {
+    "rollout_length": 100, "num_envs": 32,
+    "ppo": {"lr": 5e-4, "adam_eps": 1e-5, "epochs": 15, "num_minibatches": 1, "clip_eps": 0.05,
+            "ent_coef": 0.01, "max_grad_norm": 10.0},
+}
+"""MAT's SMAC column: 32 rollout threads × 100 steps, 15 epochs, one minibatch, lr 5e-4."""
+
+
+@dataclass(frozen=True)
+class Suite:
+    """One family of environments behind an id prefix (`PREFIX:NAME`)."""
+
+    settings: dict[str, Any]
+    """Config values (nested like `TrainConfig`) this suite's runs start from."""
+    source: str
+    """Where the settings come from, as written next to them in a run's config.yaml."""
+    host: bool = False
+    """Stepped in Python by the host runner (cmat.runners.host), not inside the JAX program."""
+
+
+SUITES: dict[str, Suite] = {
+    "matrix": Suite(
+        {"total_steps": MATRIX_BUDGET, "num_envs": 16, "rollout_length": 25, "ppo": {"epochs": 5}},
+        "matrix games: the budget they need, measured (MATRIX_BUDGET)",
+    ),
+    "smax": Suite({**SMAC_SETTINGS, "total_steps": PAPER_BUDGET},
+                  "MAT's SMAC scripts; the paper's 1e7 steps"),
+    "mpe": Suite({**SMAC_SETTINGS, "total_steps": PAPER_BUDGET},
+                 "no MAT reference for MPE: its SMAC settings; the paper's 1e7 steps"),
+    "mamujoco": Suite(
+        {"num_envs": 40, "rollout_length": 100, "total_steps": PAPER_BUDGET, "eval_episodes": 8,
+         "env_kwargs": {"agent_id": True},
+         "ppo": {"lr": 5e-5, "adam_eps": 1e-5, "epochs": 10, "num_minibatches": 40,
+                 "clip_eps": 0.05, "ent_coef": 0.001, "max_grad_norm": 0.5}},
+        "MAT's MA-MuJoCo scripts (agent ids: the agents are different joints); the paper's 1e7",
+        host=True,
+    ),
+    "grf": Suite(
+        {"num_envs": 20, "rollout_length": 200, "total_steps": PAPER_BUDGET,
+         "ppo": {"lr": 5e-4, "adam_eps": 1e-5, "epochs": 10, "num_minibatches": 1,
+                 "clip_eps": 0.05, "ent_coef": 0.01, "max_grad_norm": 0.5}},
+        "MAT's GRF scripts; the paper's 1e7 steps",
+        host=True,
+    ),
+    "pettingzoo": Suite({"total_steps": PAPER_BUDGET},
+                        "a user's ParallelEnv: the paper's 1e7 steps", host=True),
+}
+"""Suite prefix -> its settings. The order is the order error messages list them in."""
+
+ENV_PREFIXES = tuple(SUITES)
+"""Suites an environment id may name before the colon."""
+HOST_PREFIXES = tuple(prefix for prefix, suite in SUITES.items() if suite.host)
+"""Host suites (cmat.envs.host): stepped in Python by cmat.runners.host."""
+

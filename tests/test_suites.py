@@ -1,0 +1,122 @@
+"""Defaults per suite: each suite's settings resolve, are recorded with their source, and lose
+to every later layer (algorithm, preset, file, command line); `cmat train --dry-run`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from cmat.cli import main
+from cmat.config import (
+    field_names, from_yaml, layer_fields, load_config, read_sources, resolve_config, to_yaml,
+)
+from cmat.envs.suites import SUITES
+
+IDS = {
+    "matrix": "matrix:penalty", "smax": "smax:2s3z", "mpe": "mpe:simple_spread",
+    "mamujoco": "mamujoco:Ant-4x2", "grf": "grf:academy_counterattack_easy",
+    "pettingzoo": "pettingzoo:my_pkg.envs:make_env",
+}
+
+
+def value(config: object, dotted: str) -> object:
+    for part in dotted.split("."):
+        config = getattr(config, part)
+    return config
+
+
+def flat(settings: dict) -> dict[str, object]:
+    return {name: value_at(settings, name) for name in layer_fields(settings)}
+
+
+def value_at(settings: dict, dotted: str) -> object:
+    outer, _, inner = dotted.partition(".")
+    return settings[outer][inner] if inner else settings[outer]
+
+
+def test_every_suite_is_named() -> None:
+    assert set(IDS) == set(SUITES)
+
+
+@pytest.mark.parametrize("suite", list(SUITES))
+def test_a_suites_settings_resolve_with_their_source(suite: str) -> None:
+    config, sources = resolve_config(overrides=[f"env={IDS[suite]}"])
+    expected = flat(SUITES[suite].settings)
+    assert expected, suite
+    for name, setting in expected.items():
+        assert value(config, name) == setting, name
+        assert sources[name] == f"suite {suite}", name
+    untouched = set(field_names()) - set(expected) - {"env"}
+    assert {sources[name] for name in untouched} == {"default"}
+
+
+@pytest.mark.parametrize("suite", ["smax", "mamujoco", "grf"])
+def test_every_later_layer_beats_the_suite(suite: str, tmp_path: Path) -> None:
+    """algorithm > suite; preset > algorithm; file > preset; command line > file."""
+    env = f"env={IDS[suite]}"
+    mappo, sources = resolve_config(overrides=[env, "algo=mappo"])
+    assert (mappo.ppo.epochs, sources["ppo.epochs"]) == (5, "algorithm mappo")
+    assert sources["ppo.lr"] == f"suite {suite}"
+    paper, sources = resolve_config(overrides=[env, "preset=paper", "algo=mappo"])
+    assert (paper.num_envs, sources["num_envs"]) == (8, "preset paper")
+    file = tmp_path / "run.yaml"
+    file.write_text(yaml.safe_dump({"num_envs": 6, "ppo": {"lr": 3e-4, "epochs": 7}}))
+    mine, sources = resolve_config(file, [env, "preset=paper", "algo=mappo", "ppo.epochs=9"])
+    assert (mine.num_envs, sources["num_envs"]) == (6, f"file {file}")
+    assert (mine.ppo.lr, sources["ppo.lr"]) == (3e-4, f"file {file}")
+    assert (mine.ppo.epochs, sources["ppo.epochs"]) == (9, "command line")
+
+
+@pytest.mark.parametrize("overrides", [
+    [], ["env=mamujoco:Hopper-3x1", "algo=happo"], ["env=smax:3m", "preset=paper"],
+    ["env=matrix:fig1", "env_kwargs.payoff=[[1,2],[3,4]]", "network.consensus_iterations=n/2"],
+    ["env=grf:academy_3_vs_1_with_keeper", "algo=mat", "ppo.target_kl=0.02", "seed=7"],
+])
+def test_an_annotated_config_reads_back_as_the_same_config_and_sources(
+    overrides: list[str],
+) -> None:
+    config, sources = resolve_config(overrides=overrides)
+    text = to_yaml(config, sources)
+    assert from_yaml(text) == config
+    assert read_sources(text) == sources
+    assert read_sources(to_yaml(config)) == {}
+
+
+def test_the_default_budget_of_each_suite() -> None:
+    assert load_config(overrides=["env=matrix:fig1"]).total_steps == 4_000
+    for suite in ("smax", "mamujoco", "grf", "pettingzoo"):
+        assert load_config(overrides=[f"env={IDS[suite]}"]).total_steps == 10_000_000
+
+
+def test_dry_run_prints_the_resolved_config_and_starts_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    argv = ["train", "--env", "smax:3m", "--algo", "mat", "--dry-run", "--set", "ppo.lr=1e-4"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "  lr: 0.0001  # command line" in out
+    assert "  epochs: 15  # suite smax" in out
+    assert "  per_agent_gae: true  # algorithm mat" in out
+    assert "# smax:3m: 3 agents" in out and "8 discrete actions" in out
+    config_text = out[:out.rindex("# smax:3m")]
+    assert from_yaml(config_text) == load_config(overrides=["env=smax:3m", "algo=mat",
+                                                            "ppo.lr=1e-4"])
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("env, message", [
+    ("smax:3mm", "unknown SMAX scenario '3mm'"),
+    ("nope:x", "unknown environment prefix 'nope'"),
+    ("matrix", "unknown matrix game ''"),
+])
+def test_dry_run_rejects_an_environment_it_cannot_build(
+    env: str, message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["train", "--env", env, "--dry-run"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], captured.err
