@@ -1,3 +1,15 @@
 """cmat: the Consensus Multi-Agent Transformer for cooperative multi-agent RL, in JAX."""
 
 __version__ = "0.1.0"
+
+__all__ = ["Policy", "load_policy"]
+
+
+def __getattr__(name: str) -> object:
+    """`cmat.load_policy` and `cmat.Policy` (cmat.policy), imported on first use so that
+    `import cmat` stays free of JAX."""
+    if name in __all__:
+        from cmat import policy
+
+        return getattr(policy, name)
+    raise AttributeError(f"module 'cmat' has no attribute {name!r}")

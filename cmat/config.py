@@ -333,6 +333,8 @@ field) -> 'default', 'suite NAME', 'algorithm NAME', 'preset NAME', 'file PATH',
 'command line', or what else set it (`RunDir` writes them as comments in config.yaml)."""
 
 NESTED_FIELDS = ("network", "ppo")
+VERSION_HEADER = "# written by cmat "
+"""The first line of a config.yaml: the version of cmat that wrote it (`written_by`)."""
 
 
 def load_config(
@@ -433,9 +435,13 @@ def layer_fields(values: Any) -> list[str]:
 def to_yaml(config: TrainConfig, sources: ConfigSources | None = None) -> str:
     """The config as YAML (read back by `from_yaml`); with `sources`, every value carries its
     source as a comment (`lr: 5.0e-05  # suite mamujoco`)."""
+    from cmat import __version__
+
+    header = f"{VERSION_HEADER}{__version__}\n"
     if sources is None:
-        return yaml.safe_dump(asdict(config), sort_keys=False)
+        return header + yaml.safe_dump(asdict(config), sort_keys=False)
     lines = [
+        header.rstrip("\n"),
         "# Resolved run config. Each value's comment says where it came from: default (the",
         "# dataclasses in cmat/config.py), suite (cmat/envs/suites.py), algorithm (its",
         "# reference_defaults), preset, file, command line.",
@@ -471,6 +477,13 @@ def read_sources(text: str) -> ConfigSources:
         if marker and value.strip():
             sources[f"{section}.{key}" if indented and section else key] = source.strip()
     return sources
+
+
+def written_by(text: str) -> str | None:
+    """The cmat version named in a config.yaml's first line (None: written before 0.1.0
+    recorded it)."""
+    first = text.partition("\n")[0]
+    return first.removeprefix(VERSION_HEADER).strip() if first.startswith(VERSION_HEADER) else None
 
 
 def from_yaml(text: str) -> TrainConfig:

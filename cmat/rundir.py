@@ -29,7 +29,9 @@ from typing import Mapping
 
 from tensorboardX import SummaryWriter
 
-from cmat.config import ConfigSources, TrainConfig, from_yaml, read_sources, to_yaml
+from cmat.config import (
+    ConfigSources, TrainConfig, from_yaml, read_sources, to_yaml, written_by,
+)
 from cmat.errors import CmatError
 
 LOSS_COLUMNS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac")
@@ -109,7 +111,24 @@ class RunDir:
         return run
 
     def config(self) -> TrainConfig:
-        return from_yaml(self.config_path.read_text())
+        """The run's config. Raises CmatError for one this version cannot read, naming the
+        version that wrote it."""
+        text = self.config_path.read_text()
+        try:
+            return from_yaml(text)
+        except CmatError as error:
+            from cmat import __version__
+
+            written = written_by(text)
+            if written == __version__:
+                raise CmatError(f"{self.config_path}: {error}") from None
+            origin = f"cmat {written}" if written else "another cmat version"
+            raise CmatError(f"{self.config_path}: {error} (written by {origin}; this is cmat "
+                            f"{__version__})") from None
+
+    def version(self) -> str | None:
+        """The cmat version that wrote config.yaml (None where it is not recorded)."""
+        return written_by(self.config_path.read_text())
 
     def sources(self) -> ConfigSources:
         """Where each value of config.yaml came from (empty for a run that did not record it)."""

@@ -1,0 +1,155 @@
+"""A trained team's policy, loaded from a run directory, to act in a user's own loop.
+
+    policy = cmat.load_policy("runs/smax_3m", seed=0)
+    env = policy.make_env()                   # the environment the run trained on
+    actions = policy.greedy(obs, action_mask)  # obs [n, obs_dim] or [B, n, obs_dim]
+
+The actions are those `cmat eval` takes (greedy) or training samples (`act`), ready for the
+environment's `step`: discrete ones are action indices, continuous ones are clipped to the
+spec's range (host adapters map them onto each agent's Box).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cmat.config import TrainConfig
+from cmat.envs.protocol import EnvSpec
+from cmat.errors import CmatError
+from cmat.rundir import RunDir
+
+
+@dataclass(frozen=True, eq=False)
+class Policy:
+    """One seed's trained parameters with its algorithm's acting functions, jitted."""
+
+    spec: EnvSpec
+    """The environment the policy expects: `num_agents`, `obs_dim`, `action_dim`, `discrete`."""
+    config: TrainConfig
+    """The run's config (config.yaml)."""
+    seed: int
+    """The seed of the run these parameters belong to (`config.seed + index`)."""
+    env_steps: int
+    """Env steps the checkpoint was trained for (below `config.budget_steps` if unfinished)."""
+    algorithm: Any
+    params: Any
+
+    @property
+    def complete(self) -> bool:
+        """Whether the checkpoint is at the run's budget."""
+        return self.env_steps == self.config.budget_steps
+
+    def greedy(self, obs: Any, action_mask: Any = None) -> jax.Array:
+        """The most likely actions: [n] ints or [n, A] floats for obs [n, obs_dim]; with a
+        leading batch axis [B, ...] for obs [B, n, obs_dim]. `action_mask` [.., n, A] bool (True
+        = available) defaults to every action.
+
+        Raises CmatError if obs or action_mask do not have the spec's shapes."""
+        obs, action_mask = self._inputs(obs, action_mask)
+        return _greedy_team(self, self.params, obs, action_mask)
+
+    def act(self, obs: Any, action_mask: Any = None, key: jax.Array | None = None) -> jax.Array:
+        """Actions sampled as in training (shapes as `greedy`); `key` a jax PRNG key
+        (default PRNGKey(0)), split over the batch.
+
+        Raises CmatError if obs or action_mask do not have the spec's shapes."""
+        obs, action_mask = self._inputs(obs, action_mask)
+        key = jax.random.PRNGKey(0) if key is None else key
+        return _sample_team(self, self.params, obs, action_mask, key)
+
+    def make_env(self) -> Any:
+        """A new instance of the environment the run trained on, with its `env_kwargs`: an
+        in-graph `MarlEnv` (jax `reset(key)` / `step(key, state, actions)`) or, for host
+        suites, a `HostEnv` (numpy `reset(seed)` / `step(actions)`)."""
+        from cmat.envs import make_env
+        from cmat.envs.host import is_host_env, make_host_env
+
+        if is_host_env(self.config.env):
+            return make_host_env(self.config.env, seed=self.seed, **self.config.env_kwargs)
+        return make_env(self.config.env, **self.config.env_kwargs)
+
+    def _inputs(self, obs: Any, action_mask: Any) -> tuple[jax.Array, jax.Array]:
+        spec = self.spec
+        obs = jnp.asarray(obs, jnp.float32)
+        team = (spec.num_agents, spec.obs_dim)
+        if obs.ndim not in (2, 3) or obs.shape[-2:] != team:
+            raise CmatError(f"obs must have shape {team} or (batch, *{team}) for "
+                            f"{spec.env_id}, got {tuple(obs.shape)}")
+        mask_shape = (*obs.shape[:-1], spec.action_dim)
+        if action_mask is None:
+            return obs, jnp.ones(mask_shape, bool)
+        action_mask = jnp.asarray(action_mask, bool)
+        if action_mask.shape != mask_shape:
+            raise CmatError(f"action_mask must have shape {mask_shape} for obs of shape "
+                            f"{tuple(obs.shape)}, got {tuple(action_mask.shape)}")
+        return obs, action_mask
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _greedy_team(policy: Policy, params: Any, obs: jax.Array, mask: jax.Array) -> jax.Array:
+    from cmat.runners.trainer import env_actions
+
+    act = policy.algorithm.greedy
+    actions = act(params, obs, mask) if obs.ndim == 2 else jax.vmap(act, (None, 0, 0))(
+        params, obs, mask)
+    return env_actions(policy.spec, actions)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _sample_team(
+    policy: Policy, params: Any, obs: jax.Array, mask: jax.Array, key: jax.Array
+) -> jax.Array:
+    from cmat.runners.trainer import env_actions
+
+    state = jnp.zeros(policy.spec.state_dim)
+
+    def one(obs: jax.Array, mask: jax.Array, key: jax.Array) -> jax.Array:
+        return policy.algorithm.act(params, obs, mask, key, state).actions
+
+    if obs.ndim == 2:
+        actions = one(obs, mask, key)
+    else:
+        actions = jax.vmap(one)(obs, mask, jax.random.split(key, obs.shape[0]))
+    return env_actions(policy.spec, actions)
+
+
+def load_policy(run_dir: str | Path, seed: int | None = None) -> Policy:
+    """The policy of seed `seed` (default: the run's first, `config.seed`) from the latest
+    checkpoint of the run directory `run_dir`, which may be unfinished (see `Policy.complete`).
+
+    Raises CmatError for a directory without a run or checkpoint, a corrupt checkpoint, a seed
+    the run did not train, or a run whose files this version of cmat cannot read."""
+    from cmat import __version__
+    from cmat.cli import build_trainer
+
+    run = RunDir.open(Path(run_dir))
+    config = run.config()
+    seed = config.seed if seed is None else seed
+    index = seed - config.seed
+    if not 0 <= index < config.seeds:
+        seeds = f"{config.seed}..{config.seed + config.seeds - 1}"
+        raise CmatError(f"{run.path} trained seeds {seeds}; there is no seed {seed}")
+    data, env_steps = run.load_checkpoint()
+    trainer = build_trainer(config)
+    try:
+        state = trainer.from_bytes(data)
+    except CmatError as error:
+        written = run.version()
+        origin = f"written by cmat {written}" if written else "written by another cmat version"
+        if written == __version__:
+            raise
+        raise CmatError(f"{run.path}: {error}; the run was {origin}, this is cmat "
+                        f"{__version__}") from None
+    params = jax.tree.map(lambda leaf: np.asarray(leaf)[index], state.params)
+    close = getattr(trainer, "close", None)
+    if callable(close):
+        close()
+    return Policy(trainer.env_spec, config, seed, env_steps, trainer.setup.algorithm,
+                  jax.tree.map(jnp.asarray, params))

@@ -1,0 +1,144 @@
+"""`cmat.load_policy`: a trained run's policy in a user's own loop acts exactly as `cmat eval`,
+and the README's PettingZoo loop reaches the optimum of a game the run learned."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_host_envs import SignalGame
+
+import cmat
+from cmat.cli import build_trainer, main
+from cmat.errors import CmatError
+from cmat.rundir import RunDir
+
+SMAX_RUN = ["train", "--env", "smax:3m", "--steps", "128", "--seeds", "2", "--set",
+            "num_envs=4", "rollout_length=16", "ppo.epochs=1", "eval_episodes=4", "seed=5"]
+
+
+@pytest.fixture(scope="module")
+def smax_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("policy") / "smax"
+    assert main([*SMAX_RUN, "--out", str(out)]) == 0
+    return out
+
+
+def test_a_users_greedy_loop_scores_what_cmat_eval_scores(smax_run: Path) -> None:
+    """Episodes stepped by hand with `policy.greedy` (batch of teams), replaying the keys of
+    the trainer's evaluation, end with the returns `cmat eval` reports for that seed."""
+    policy = cmat.load_policy(smax_run, seed=6)
+    assert (policy.seed, policy.env_steps, policy.complete) == (6, 128, True)
+    trainer = build_trainer(RunDir.open(smax_run).config())
+    state = trainer.from_bytes(RunDir.open(smax_run).load_checkpoint()[0])
+    episodes = 4
+    expected = trainer.evaluate(state, episodes)["episode_return"][1]
+
+    env = policy.make_env()
+    rng = trainer.seed_keys(offset=1_000_003)[1]
+    reset_key, rng = jax.random.split(rng)
+    env_state, step = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
+    returns, finished = np.zeros(episodes), np.zeros(episodes, bool)
+    for key in jax.random.split(rng, policy.spec.max_episode_steps):
+        actions = policy.greedy(step.obs, step.action_mask)
+        assert actions.shape == (episodes, 3)
+        assert np.asarray(step.action_mask)[np.arange(episodes)[:, None], np.arange(3),
+                                            np.asarray(actions)].all()
+        env_state, step = jax.vmap(env.step)(jax.random.split(key, episodes), env_state, actions)
+        returns += np.where(finished, 0.0, np.asarray(step.reward))
+        finished |= np.asarray(step.done)
+    np.testing.assert_allclose(returns.mean(), expected, rtol=1e-5)
+
+
+def test_one_team_or_a_batch_and_sampling(smax_run: Path) -> None:
+    policy = cmat.load_policy(smax_run)
+    assert policy.seed == 5
+    env = policy.make_env()
+    _, steps = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(1), 3))
+    batch = np.asarray(policy.greedy(steps.obs, steps.action_mask))
+    for index in range(3):
+        team = policy.greedy(steps.obs[index], steps.action_mask[index])
+        assert team.shape == (3,) and np.array_equal(team, batch[index])
+    sampled = policy.act(steps.obs, steps.action_mask, jax.random.PRNGKey(2))
+    again = policy.act(steps.obs, steps.action_mask, jax.random.PRNGKey(2))
+    assert sampled.shape == (3, 3) and np.array_equal(sampled, again)
+    mask = np.asarray(steps.action_mask)
+    assert mask[np.arange(3)[:, None], np.arange(3), np.asarray(sampled)].all()
+    only_stop = jnp.zeros_like(steps.action_mask).at[..., 1].set(True)
+    assert np.all(np.asarray(policy.act(steps.obs, only_stop)) == 1)
+    other_seed = cmat.load_policy(smax_run, seed=6)
+    assert not all(np.array_equal(a, b) for a, b in zip(
+        jax.tree.leaves(policy.params), jax.tree.leaves(other_seed.params), strict=True))
+
+
+@pytest.mark.parametrize("obs_shape, mask_shape, message", [
+    ((3, 5), None, "obs must have shape (3, 75) or (batch, *(3, 75))"),
+    ((2, 4, 75), None, "obs must have shape (3, 75)"),
+    ((75,), None, "got (75,)"),
+    ((3, 75), (3, 9), "action_mask must have shape (3, 8)"),
+    ((2, 3, 75), (3, 8), "action_mask must have shape (2, 3, 8)"),
+])
+def test_inputs_of_the_wrong_shape_are_one_error(
+    smax_run: Path, obs_shape: tuple, mask_shape: tuple | None, message: str
+) -> None:
+    policy = cmat.load_policy(smax_run)
+    mask = None if mask_shape is None else np.ones(mask_shape, bool)
+    with pytest.raises(CmatError, match=re.escape(message)):
+        policy.greedy(np.zeros(obs_shape), mask)
+
+
+def test_runs_that_cannot_be_loaded_are_one_error(smax_run: Path, tmp_path: Path) -> None:
+    with pytest.raises(CmatError, match="trained seeds 5..6; there is no seed 7"):
+        cmat.load_policy(smax_run, seed=7)
+    with pytest.raises(CmatError, match="holds no run"):
+        cmat.load_policy(tmp_path)
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    (partial / "config.yaml").write_bytes((smax_run / "config.yaml").read_bytes())
+    with pytest.raises(CmatError, match="no checkpoint in"):
+        cmat.load_policy(partial)
+    newer = tmp_path / "newer"
+    newer.mkdir()
+    text = (smax_run / "config.yaml").read_text().splitlines()
+    newer_text = ["# written by cmat 9.0.0", *text[1:], "world_model: true"]
+    (newer / "config.yaml").write_text("\n".join(newer_text) + "\n")
+    with pytest.raises(CmatError, match=r"world_model.*written by cmat 9\.0\.0; this is cmat"):
+        cmat.load_policy(newer)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "config.yaml").write_text("\n".join(
+        ["# written by cmat 0.0.1", *(line.replace("n_embd: 64", "n_embd: 32") for line in text[1:])]
+    ) + "\n")
+    (other / "checkpoints").mkdir()
+    (other / "checkpoints" / "latest.ckpt").write_bytes(
+        (smax_run / "checkpoints" / "latest.ckpt").read_bytes())
+    with pytest.raises(CmatError, match=r"shapes differ.*written by cmat 0\.0\.1"):
+        cmat.load_policy(other)
+
+
+SIGNAL = "pettingzoo:test_host_envs:signal_game"
+
+
+def test_the_readme_pettingzoo_loop_reaches_the_optimum(tmp_path: Path) -> None:
+    """The signal game's settings measured in tests/test_host_envs.py (2,400 steps reach the
+    optimum return 5); the README's loop with the loaded policy scores 5 in every episode."""
+    out = tmp_path / "signal"
+    assert main(["train", "--env", SIGNAL, "--steps", "2400", "--out", str(out), "--set",
+                 "num_envs=16", "rollout_length=25", "ppo.epochs=8", "network.n_embd=32",
+                 "ppo.clip_eps=0.2", "eval_episodes=16", "log_interval=6"]) == 0
+
+    policy = cmat.load_policy(out)
+    env = policy.make_env()
+    for episode in range(5):
+        step, score = env.reset(seed=episode), 0.0
+        while True:
+            step = env.step(np.asarray(policy.greedy(step.obs, step.action_mask)))
+            score += step.reward
+            if step.done:
+                break
+        assert score == SignalGame.LENGTH
+    env.close()
