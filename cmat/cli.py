@@ -1,4 +1,5 @@
-"""Command line: `cmat train`, `cmat finetune`, `cmat eval`, `cmat plot`, `cmat experiment`.
+"""Command line: `cmat train`, `cmat finetune`, `cmat eval`, `cmat render`, `cmat plot`,
+`cmat experiment`.
 
 Every user error (CmatError, an unreadable file) is one line `cmat: error: ...` on stderr and
 exit code 2, as argparse does for usage errors.
@@ -72,6 +73,19 @@ def build_parser() -> argparse.ArgumentParser:
              "iteration)",
     )
     evaluate.set_defaults(handler=eval_command)
+
+    render = commands.add_parser(
+        "render", help="greedy episodes of a trained policy drawn into a GIF or MP4"
+    )
+    render.add_argument("--run", type=Path, required=True, metavar="DIR", help="run directory")
+    render.add_argument("--seed", type=int,
+                        help="which of the run's seeds (default: its first); also seeds the "
+                             "episodes")
+    render.add_argument("--episodes", type=int, default=1, help="episodes to draw (default 1)")
+    render.add_argument("--fps", type=int, default=8, help="frames per second (default 8)")
+    render.add_argument("--out", type=Path, required=True, metavar="FILE.gif|FILE.mp4",
+                        help="animation to write (.gif; .mp4 needs ffmpeg)")
+    render.set_defaults(handler=render_command)
 
     plot = commands.add_parser("plot", help="evaluation curves of run directories")
     plot.add_argument("runs", type=Path, nargs="+", metavar="DIR", help="run directories")
@@ -276,6 +290,16 @@ def experiment_command(args: argparse.Namespace) -> None:
 
     run_experiment(args.spec, out=args.out, parallel=args.parallel, ray_address=args.ray,
                    dry_run=args.dry_run, report_only=args.report_only)
+
+
+def render_command(args: argparse.Namespace) -> None:
+    from cmat.envs.render import check_request, render_episodes
+    from cmat.policy import load_policy
+
+    check_request(RunDir.open(args.run).config().env, args.out, args.episodes, args.fps)
+    policy = load_policy(args.run, args.seed)
+    frames = render_episodes(policy, args.out, args.episodes, policy.seed, args.fps)
+    print(f"wrote {args.out} ({frames} frames, seed {policy.seed})")
 
 
 def plot_command(args: argparse.Namespace) -> None:

@@ -142,3 +142,53 @@ def test_the_readme_pettingzoo_loop_reaches_the_optimum(tmp_path: Path) -> None:
                 break
         assert score == SignalGame.LENGTH
     env.close()
+
+
+def test_render_draws_the_episode_the_policy_plays(smax_run: Path, tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """The GIF holds one frame per step of the greedy episode plus its first, and its
+    pictures change as the units move."""
+    from PIL import Image
+
+    out = tmp_path / "episode.gif"
+    assert main(["render", "--run", str(smax_run), "--seed", "6", "--out", str(out)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+
+    policy = cmat.load_policy(smax_run, seed=6)
+    env = policy.make_env()
+    key = jax.random.PRNGKey(6)
+    key, reset_key = jax.random.split(key)
+    state, step = env.reset(reset_key)
+    steps = 0
+    while not bool(step.done):
+        key, step_key = jax.random.split(key)
+        state, step = env.step_in_episode(step_key, state, policy.greedy(step.obs,
+                                                                         step.action_mask))
+        steps += 1
+    with Image.open(out) as gif:
+        assert gif.n_frames == steps + 1
+        pictures = []
+        for index in (0, gif.n_frames - 1):
+            gif.seek(index)
+            pictures.append(np.asarray(gif.convert("RGB")))
+    assert pictures[0].shape[2] == 3 and not np.array_equal(*pictures)
+
+
+@pytest.mark.parametrize("env, args, message", [
+    ("matrix:fig1", [], "matrix:fig1 has no renderer; cmat render draws smax, mpe"),
+    ("smax:3m", ["--out", "x.avi"], "--out must end in .gif or .mp4, got 'x.avi'"),
+    ("smax:3m", ["--episodes", "0"], "--episodes and --fps must be > 0"),
+])
+def test_render_requests_it_cannot_serve_are_one_error(
+    smax_run: Path, tmp_path: Path, env: str, args: list[str], message: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(
+        (smax_run / "config.yaml").read_text().replace("env: smax:3m", f"env: {env}"))
+    out = [] if "--out" in args else ["--out", str(tmp_path / "a.gif")]
+    assert main(["render", "--run", str(run), *out, *args]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and message in error[0], error
+    assert not (tmp_path / "a.gif").exists()

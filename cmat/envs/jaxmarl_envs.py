@@ -94,17 +94,28 @@ class JaxMarlEnv:
     def step(self, key: jax.Array, state: Any, actions: jax.Array) -> tuple[Any, TimeStep]:
         """Take joint `actions` [n_agents]; on `done`, return the next episode's first state."""
         step_key, reset_key = jax.random.split(key)
+        next_state, timestep = self.step_in_episode(step_key, state, actions)
+        reset_state, first = self.reset(reset_key)
+        state = jax.tree.map(lambda r, s: jnp.where(timestep.done, r, s), reset_state, next_state)
+        return state, timestep._replace(
+            obs=jnp.where(timestep.done, first.obs, timestep.obs),
+            action_mask=self._action_mask(state),
+            alive=self._alive(state),
+            global_state=jnp.where(timestep.done, first.global_state, timestep.global_state),
+        )
+
+    def step_in_episode(
+        self, key: jax.Array, state: Any, actions: jax.Array
+    ) -> tuple[Any, TimeStep]:
+        """`step` without the automatic reset: after the last step of an episode, the state and
+        observation are its terminal ones (what a renderer draws last)."""
         agent_actions = {agent: actions[i] for i, agent in enumerate(self.env.agents)}
-        obs, next_state, rewards, dones, _ = self.env.step_env(step_key, state, agent_actions)
+        obs, next_state, rewards, dones, _ = self.env.step_env(key, state, agent_actions)
         done = dones["__all__"]
-        won = done & self._won(next_state)
-        reset_obs, reset_state = self.env.reset(reset_key)
-        state = jax.tree.map(lambda r, s: jnp.where(done, r, s), reset_state, next_state)
-        global_state = jnp.where(done, self._global_state(reset_obs), self._global_state(obs))
-        obs = jnp.where(done, self._obs(reset_obs), self._obs(obs))
         reward = jnp.mean(self._stack(rewards)).astype(jnp.float32)
-        return state, TimeStep(
-            obs, self._action_mask(state), reward, done, won, self._alive(state), global_state
+        return next_state, TimeStep(
+            self._obs(obs), self._action_mask(next_state), reward, done,
+            done & self._won(next_state), self._alive(next_state), self._global_state(obs),
         )
 
     def _stack(self, per_agent: dict[str, jax.Array]) -> jax.Array:
