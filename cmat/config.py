@@ -26,6 +26,7 @@ FINETUNE_MODES = ("consensus", "action")
 JOINT_CLIPS = ("joint", "per_agent")
 ENTROPY_REDUCTIONS = ("mean", "sum")
 JOINT_RATIO_ALGORITHMS = ("cmat", "triple_bert")
+LOGGERS = ("tensorboard", "wandb")
 ALGORITHMS = ("cmat", "mat", "pmat", "triple_bert", "happo", "mappo")
 
 @dataclass(frozen=True)
@@ -168,6 +169,11 @@ class TrainConfig:
     Critic-MLP and Actor-MLP. The rest is frozen by an optimizer mask (`cmat finetune`)."""
     finetune_from: str | None = None
     """The run directory a fine-tuning run started from (recorded by `cmat finetune`)."""
+    logger: str = "tensorboard"
+    """Where scalars go besides metrics.csv: 'tensorboard' (the run's tb/), or 'wandb' (also
+    Weights & Biases, the `wandb` extra). W&B runs offline, into the run's wandb/, unless the
+    user asked for online logging (WANDB_MODE=online, or WANDB_API_KEY set); WANDB_PROJECT
+    names the project (default cmat)."""
     preset: str | None = None
     """A named set of values the algorithm declares (its class's `presets`), applied over its
     reference defaults and under `--config` / `--set`: 'paper' is the paper's exact settings
@@ -212,6 +218,8 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"host_workers must be >= 0, got {config.host_workers}"),
         (config.host_crash_limit >= 1,
          f"host_crash_limit must be >= 1, got {config.host_crash_limit}"),
+        (config.logger in LOGGERS,
+         f"logger must be one of {', '.join(LOGGERS)}, got {config.logger!r}"),
         (config.host_nonfinite in ("error", "warn"),
          f"host_nonfinite must be error or warn, got {config.host_nonfinite!r}"),
         (config.log_interval is None or config.log_interval > 0,

@@ -7,3 +7,6 @@ python=$(command -v python3.11 || command -v python3)
 [ -x .venv/bin/python ] || "$python" -m venv .venv
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet -e ".[test]"
+# marl-eval (reads the experiments' marl_eval.json in a test) pins pandas==1.4.4, which does not
+# build on Python 3.11 with NumPy 2; its code runs on the pandas the marl-eval extra installs.
+.venv/bin/python -m pip install --quiet --no-deps "id-marl-eval==0.0.4"

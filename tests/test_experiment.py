@@ -4,6 +4,7 @@ run directories redone, unavailable environments skipped, bad specs rejected, st
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 import shutil
 import signal
@@ -120,6 +121,35 @@ def test_grid_writes_figures_table_and_statistics(grid: tuple[Path, bytes, str])
     assert "| Fig. 1 matrix game | CMAT | 2 | mixture |" in table
     assert "| CMAT > MAT |" in table and "IQM [95% CI]" in table
     assert (out / "spec.yaml").read_text() == SMOKE.read_text()
+
+
+def test_the_marl_eval_json_loads_in_marl_eval_with_the_numbers_of_results_json(
+    grid: tuple[Path, bytes, str],
+) -> None:
+    pytest.importorskip("marl_eval")
+    from marl_eval.utils.data_processing_utils import (
+        create_matrices_for_rliable, data_process_pipeline,
+    )
+
+    out = grid[0]
+    raw = json.loads((out / "marl_eval.json").read_text())
+    summary = json.loads((out / "results.json").read_text())
+    processed = data_process_pipeline(raw_data=raw, metrics_to_normalize=[])
+    matrices, _ = create_matrices_for_rliable(
+        data_dictionary=processed, environment_name="matrix", metrics_to_normalize=[])
+    lines = summary["tasks"][0]["lines"]
+    compared = {label for label in lines if "finetune" not in label}
+    assert compared == set(raw["matrix"]["fig1"])
+    assert set(matrices["mean_episode_return"]) == {label.lower() for label in compared}
+    for label in compared:  # marl-eval lower-cases algorithm names
+        line = lines[label]
+        loaded = np.asarray(matrices["mean_episode_return"][label.lower()])[:, 0]
+        np.testing.assert_allclose(sorted(loaded), sorted(line["finals"]))
+        runs = raw["matrix"]["fig1"][label]
+        assert len(runs) == 2
+        steps = {value["step_count"] for run in runs.values()
+                 for key, value in run.items() if key.startswith("step_")}
+        assert steps == {500, 1000}
 
 
 def copy_grid(grid: tuple[Path, bytes, str], tmp_path: Path) -> Path:

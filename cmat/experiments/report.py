@@ -6,7 +6,8 @@
 - `figure_ablation.png` (paper Fig. 4), when the spec has variants of figure `ablation`.
 - `results.md`: final greedy metrics (mean ± std over seeds), the ablation table with each
   run's resolved m, aggregate statistics with bootstrap confidence intervals, the published
-  figures, and what happened to every run; `results.json`: the same numbers.
+  figures, and what happened to every run; `results.json`: the same numbers;
+  `marl_eval.json`: every evaluation of every run in marl-eval's format.
 
 The metric of a task is the win rate where its environment defines one, else the episode
 return. A run's final score is each seed's last greedy evaluation.
@@ -34,6 +35,7 @@ import yaml
 from matplotlib.figure import Figure
 from scipy import stats
 
+from cmat.experiments.marl_eval import marl_eval_data
 from cmat.experiments.plots import Curve, eval_curve
 from cmat.experiments.spec import ExperimentSpec
 from cmat.rundir import RunDir
@@ -76,7 +78,8 @@ class Line:
 
 
 def write_report(plan: Plan) -> list[Path]:
-    """Write the figures, results.md and results.json of `plan`; returns the paths written."""
+    """Write the figures, results.md, results.json and marl_eval.json (marl-eval's format,
+    cmat.experiments.marl_eval) of `plan`; returns the paths written."""
     lines = collect_lines(plan)
     metrics = {env.id: task_metric(lines.get(env.id, [])) for env in plan.spec.envs}
     references = load_references()
@@ -91,7 +94,9 @@ def write_report(plan: Plan) -> list[Path]:
     summary = summarise(plan, lines, metrics, references)
     (plan.out / "results.json").write_text(json.dumps(summary, indent=1))
     (plan.out / "results.md").write_text(markdown(plan, summary))
-    return [*written, plan.out / "results.md", plan.out / "results.json"]
+    (plan.out / "marl_eval.json").write_text(json.dumps(marl_eval_data(lines), indent=1))
+    return [*written, *(plan.out / name for name in ("results.md", "results.json",
+                                                       "marl_eval.json"))]
 
 
 def collect_lines(plan: Plan) -> dict[str, list[Line]]:

@@ -43,9 +43,10 @@ from cmat.rundir import RunDir
 from cmat.runners.finetune import finetune_config
 
 FINISHED, NEW, RESUME, REDO, UNAVAILABLE = "finished", "new", "resume", "redo", "unavailable"
-IGNORED_FIELDS = ("finetune_from",)
+IGNORED_FIELDS = ("finetune_from", "logger")
 """Config fields a reused run may differ in: the source path of a fine-tuning stage (absolute
-when written) changes when the experiment directory moves; the layout fixes the source."""
+when written) changes when the experiment directory moves, the layout fixes the source; where
+scalars were also logged changes no result."""
 
 
 @dataclass

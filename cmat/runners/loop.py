@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
+import os
 import time
-from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from tensorboardX import SummaryWriter
 from tqdm import tqdm
 
+from cmat.config import TrainConfig
 from cmat.errors import CmatError
 from cmat.experiments.plots import plot_runs
 from cmat.rundir import DIAGNOSTIC_COLUMNS, PER_RUN_PREFIXES, Row, RunDir
@@ -59,7 +63,7 @@ def run_training(
     chunks += [remaining % config.updates_per_log] if remaining % config.updates_per_log else []
     try:
         with (
-            run_dir.summary_writer(purge_step=done + 1 if resume else None) as writer,
+            scalar_writers(config, run_dir, purge_step=done + 1 if resume else None) as writer,
             tqdm(total=config.budget_steps, initial=done, unit="step", unit_scale=True,
                  desc=config.env, dynamic_ncols=True) as bar,
         ):
@@ -71,8 +75,71 @@ def run_training(
     plot_runs([run_dir.path], run_dir.curve_path)
 
 
+class WandbWriter:
+    """`add_scalar` / `flush` / `close` of tensorboardX's SummaryWriter, into a Weights & Biases
+    run (`TrainConfig.logger` 'wandb'). A resumed run continues the same W&B run (its id is
+    derived from the run directory)."""
+
+    def __init__(self, config: TrainConfig, run_dir: RunDir) -> None:
+        try:
+            import wandb
+        except ImportError:
+            raise CmatError("logger=wandb needs the wandb package: pip install 'cmat[wandb]'") \
+                from None
+        online = os.environ.get("WANDB_MODE") == "online" or (
+            "WANDB_MODE" not in os.environ and bool(os.environ.get("WANDB_API_KEY")))
+        path = run_dir.path.resolve()
+        self.run = wandb.init(
+            project=os.environ.get("WANDB_PROJECT", "cmat"), name=path.name,
+            id=hashlib.sha256(str(path).encode()).hexdigest()[:16], resume="allow",
+            dir=str(path), config=dataclasses.asdict(config),
+            mode="online" if online else "offline",
+        )
+        self.pending: dict[int, dict[str, float]] = {}
+
+    def add_scalar(self, tag: str, value: float, step: int) -> None:
+        self.pending.setdefault(step, {})[tag] = value
+
+    def flush(self) -> None:
+        for step in sorted(self.pending):
+            self.run.log(self.pending[step], step=step)
+        self.pending.clear()
+
+    def close(self) -> None:
+        self.flush()
+        self.run.finish()
+
+
+class ScalarWriters:
+    """The run's TensorBoard writer and, with `logger` 'wandb', a `WandbWriter`, as one."""
+
+    def __init__(self, writers: list[Any]) -> None:
+        self.writers = writers
+
+    def add_scalar(self, tag: str, value: float, step: int) -> None:
+        for writer in self.writers:
+            writer.add_scalar(tag, value, step)
+
+    def flush(self) -> None:
+        for writer in self.writers:
+            writer.flush()
+
+
+@contextmanager
+def scalar_writers(
+    config: TrainConfig, run_dir: RunDir, purge_step: int | None
+) -> Iterator[ScalarWriters]:
+    with run_dir.summary_writer(purge_step=purge_step) as tensorboard:
+        extra = [WandbWriter(config, run_dir)] if config.logger == "wandb" else []
+        try:
+            yield ScalarWriters([tensorboard, *extra])
+        finally:
+            for writer in extra:
+                writer.close()
+
+
 def run_chunk(
-    trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: SummaryWriter, bar: tqdm,
+    trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: ScalarWriters, bar: tqdm,
     updates: int,
 ) -> TrainerState:
     """`updates` updates, their evaluation, logs and checkpoint."""
@@ -124,7 +191,7 @@ def seed_rows(kind: str, metrics: Mapping[str, np.ndarray], base_seed: int) -> l
     ]
 
 
-def log_scalars(writer: SummaryWriter, rows: list[Row], step: int, steps_per_second: float) -> None:
+def log_scalars(writer: ScalarWriters, rows: list[Row], step: int, steps_per_second: float) -> None:
     """Rows as TensorBoard scalars: train/..., eval/..., losses/... tagged per seed."""
     for row in rows:
         for key, value in row.items():
