@@ -83,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "episodes")
     render.add_argument("--episodes", type=int, default=1, help="episodes to draw (default 1)")
     render.add_argument("--fps", type=int, default=8, help="frames per second (default 8)")
+    render.add_argument("--max-steps", type=int, metavar="N",
+                        help="draw at most N steps of each episode (default: whole episodes)")
     render.add_argument("--out", type=Path, required=True, metavar="FILE.gif|FILE.mp4",
                         help="animation to write (.gif; .mp4 needs ffmpeg)")
     render.set_defaults(handler=render_command)
@@ -298,7 +300,8 @@ def render_command(args: argparse.Namespace) -> None:
 
     check_request(RunDir.open(args.run).config().env, args.out, args.episodes, args.fps)
     policy = load_policy(args.run, args.seed)
-    frames = render_episodes(policy, args.out, args.episodes, policy.seed, args.fps)
+    frames = render_episodes(policy, args.out, args.episodes, policy.seed, args.fps,
+                             args.max_steps)
     print(f"wrote {args.out} ({frames} frames, seed {policy.seed})")
 
 

@@ -50,21 +50,26 @@ class Frame:
 
 
 def render_episodes(
-    policy: Policy, out: Path, episodes: int = 1, seed: int = 0, fps: int = 8
+    policy: Policy, out: Path, episodes: int = 1, seed: int = 0, fps: int = 8,
+    max_steps: int | None = None,
 ) -> int:
     """Write `episodes` greedy episodes of `policy` to `out` (.gif or .mp4); the number of
-    frames written (per episode, its steps + 1 for in-graph suites, its steps for host ones).
+    frames written (per episode, its steps + 1 for in-graph suites, its steps for host ones;
+    an episode longer than `max_steps` is drawn up to there).
 
     Raises CmatError as `check_request` does, and for a host environment that cannot draw
     itself here."""
     from matplotlib import animation
 
     check_request(policy.config.env, out, episodes, fps)
+    limit = policy.spec.max_episode_steps if max_steps is None else max_steps
+    if limit <= 0:
+        raise CmatError(f"--max-steps must be > 0, got {limit}")
     if policy.config.env.partition(":")[0] in ("smax", "mpe"):
-        frames = list(jaxmarl_frames(policy, episodes, seed))
+        frames = list(jaxmarl_frames(policy, episodes, seed, limit))
         figure, draw = jaxmarl_drawing(policy, frames)
     else:
-        frames = list(host_frames(policy, episodes, seed))
+        frames = list(host_frames(policy, episodes, seed, limit))
         figure, draw = picture_drawing(frames)
     writer = (animation.PillowWriter(fps=fps) if out.suffix.lower() == ".gif"
               else animation.FFMpegWriter(fps=fps))
@@ -98,7 +103,7 @@ def outcome(won: bool, has_win_rate: bool) -> str:
     return ("won" if won else "lost") if has_win_rate else "ended"
 
 
-def jaxmarl_frames(policy: Policy, episodes: int, seed: int) -> Iterator[Frame]:
+def jaxmarl_frames(policy: Policy, episodes: int, seed: int, limit: int) -> Iterator[Frame]:
     """Frames of greedy episodes in an in-graph JaxMARL environment (SMAX, MPE); each holds
     (key, JaxMARL state, actions of every unit) for the suite's renderer."""
     import jax
@@ -111,7 +116,7 @@ def jaxmarl_frames(policy: Policy, episodes: int, seed: int) -> Iterator[Frame]:
         key, reset_key = jax.random.split(key)
         state, timestep = reset(reset_key)
         total = 0.0
-        for t in range(policy.spec.max_episode_steps):
+        for t in range(limit):
             key, step_key = jax.random.split(key)
             actions = policy.greedy(timestep.obs, timestep.action_mask)
             yield Frame((step_key, state, actions), episode, t, total)
@@ -148,7 +153,7 @@ def jaxmarl_drawing(policy: Policy, frames: list[Frame]) -> tuple[Figure, Callab
     return visualiser.fig, lambda frame: visualiser.update(index[id(frame)])
 
 
-def host_frames(policy: Policy, episodes: int, seed: int) -> Iterator[Frame]:
+def host_frames(policy: Policy, episodes: int, seed: int, limit: int) -> Iterator[Frame]:
     """Frames of greedy episodes in a host environment built with `render_mode="rgb_array"`,
     each an RGB array from the simulator's own `render()`."""
     if policy.config.env.startswith("mamujoco:"):
@@ -168,15 +173,16 @@ def host_frames(policy: Policy, episodes: int, seed: int) -> Iterator[Frame]:
     try:
         for episode in range(episodes):
             timestep, total = env.reset(seed=seed + episode), 0.0
-            for t in range(policy.spec.max_episode_steps):
+            for t in range(limit):
                 picture = draw_host(simulator, policy.config.env)
                 actions = np.asarray(policy.greedy(timestep.obs, timestep.action_mask))
                 timestep = env.step(actions)
                 total += float(timestep.reward)
-                done = timestep.done or t + 1 == policy.spec.max_episode_steps
-                yield Frame(picture, episode, t, total,
-                            outcome(timestep.won, policy.spec.has_win_rate) if done else None)
-                if done:
+                last = ("stopped at --max-steps" if not timestep.done and t + 1 == limit
+                        else outcome(timestep.won, policy.spec.has_win_rate) if timestep.done
+                        else None)
+                yield Frame(picture, episode, t, total, last)
+                if last:
                     break
     finally:
         env.close()
