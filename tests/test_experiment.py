@@ -306,7 +306,8 @@ def test_unreadable_specs_and_options_are_one_error_line(
     assert "--parallel must be > 0" in one_error_line(capsys.readouterr().err)
 
 
-@pytest.mark.parametrize("name", ["paper_main.yaml", "paper_ablation.yaml", "smoke.yaml"])
+@pytest.mark.parametrize("name", ["paper_main.yaml", "paper_ablation.yaml", "smoke.yaml",
+                                  "cmat_speed_study.yaml", "cmat_speed_study_long.yaml"])
 def test_shipped_specs_plan(name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["experiment", str(REPO / "experiments" / name), "--out", str(tmp_path / "x"),
                  "--dry-run"]) == 0
