@@ -172,6 +172,7 @@ def test_permuting_agents_permutes_policies_given_the_latent_and_keeps_the_conse
     np.testing.assert_array_equal(greedy_permuted, np.asarray(greedy)[permutation])
 
 
+@pytest.mark.slow
 def test_categorical_consensus_reaches_an_optimum_of_the_penalty_game() -> None:
     config = load_config(overrides=[
         "env=matrix:penalty", "network.consensus_policy=categorical", *PENALTY_RUN,

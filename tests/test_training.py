@@ -133,6 +133,7 @@ def test_fig1_cmat_reaches_the_optimum_in_at_least_9_of_10_seeds() -> None:
     assert at_optimum >= 9, joint
 
 
+@pytest.mark.slow
 def test_smax_3m_improves_on_its_starting_return() -> None:
     """Measured: greedy return 0.2 at init, 1.1-1.5 after 32k-48k steps (win rate 0.3-0.6)."""
     config = load_config(overrides=[
