@@ -120,3 +120,19 @@ def test_dry_run_rejects_an_environment_it_cannot_build(
     assert captured.out == ""
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], captured.err
+
+
+def test_dry_run_of_a_resume_prints_the_runs_config_and_trains_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    config, sources = resolve_config(overrides=["env=matrix:fig1", "seeds=2"])
+    (run / "config.yaml").write_text(to_yaml(config, sources))
+    before = (run / "config.yaml").read_bytes()
+    assert main(["train", "--resume", str(run), "--steps", "8000", "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "total_steps: 8000  # command line (--resume --steps)" in out
+    assert "seeds: 2  # command line" in out and "# matrix:fig1: 2 agents" in out
+    assert (run / "config.yaml").read_bytes() == before
+    assert sorted(path.name for path in run.iterdir()) == ["config.yaml"]
