@@ -176,10 +176,7 @@ def train_command(args: argparse.Namespace) -> None:
         if args.steps is not None:
             config = validate(dataclasses.replace(config, total_steps=args.steps))
         if args.dry_run:
-            sources = run_dir.sources()
-            if args.steps is not None and sources:
-                sources["total_steps"] = "command line (--resume --steps)"
-            print(to_yaml(config, sources or None), end="")
+            print(to_yaml(config, run_dir.resumed_sources(config)), end="")
             print(f"# {describe_env(config)}")
             return
         train_into(build_trainer(config), run_dir, resume=True)

@@ -134,6 +134,14 @@ class RunDir:
         """Where each value of config.yaml came from (empty for a run that did not record it)."""
         return read_sources(self.config_path.read_text())
 
+    def resumed_sources(self, config: TrainConfig) -> ConfigSources | None:
+        """The sources of config.yaml for `config`, the run's config with a budget `cmat train
+        --resume --steps` may have changed (None for a run that did not record them)."""
+        sources = self.sources()
+        if sources and self.config().total_steps != config.total_steps:
+            sources["total_steps"] = "command line (--resume --steps)"
+        return sources or None
+
     def write_config(self, config: TrainConfig, sources: ConfigSources | None = None) -> None:
         atomic_write(self.config_path, to_yaml(config, sources).encode())
 

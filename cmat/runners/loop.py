@@ -48,11 +48,7 @@ def run_training(
             raise CmatError(
                 f"steps ({config.total_steps}) is below the {done} env steps already done"
             )
-        previous = run_dir.config()
-        sources = run_dir.sources()
-        if sources and previous.total_steps != config.total_steps:
-            sources["total_steps"] = "command line (--resume --steps)"
-        run_dir.write_config(config, sources or None)
+        run_dir.write_config(config, run_dir.resumed_sources(config))
         run_dir.truncate_metrics(done)
     else:
         state = trainer.init() if start is None else start
