@@ -1,14 +1,14 @@
 """cmat: the Consensus Multi-Agent Transformer for cooperative multi-agent RL, in JAX."""
 
-__version__ = "0.1.0"
+from cmat.version import __version__
 
-__all__ = ["Policy", "load_policy"]
+__all__ = ["Policy", "__version__", "load_policy"]
 
 
 def __getattr__(name: str) -> object:
     """`cmat.load_policy` and `cmat.Policy` (cmat.policy), imported on first use so that
     `import cmat` stays free of JAX."""
-    if name in __all__:
+    if name in ("Policy", "load_policy"):
         from cmat import policy
 
         return getattr(policy, name)

@@ -18,10 +18,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cmat.config import (
-    FINETUNE_MODES, TrainConfig, resolve_config, resolve_iterations, to_yaml, validate,
+    FINETUNE_MODES,
+    TrainConfig,
+    resolve_config,
+    resolve_iterations,
+    to_yaml,
+    validate,
 )
 from cmat.errors import CmatError
-from cmat.experiments.plots import plot_diagnostics, plot_runs
+from cmat.plots import plot_diagnostics, plot_runs
 from cmat.rundir import RunDir
 from cmat.runners.loop import run_training
 
@@ -299,8 +304,8 @@ def experiment_command(args: argparse.Namespace) -> None:
 
 
 def render_command(args: argparse.Namespace) -> None:
-    from cmat.envs.render import check_request, render_episodes
     from cmat.policy import load_policy
+    from cmat.render import check_request, render_episodes
 
     check_request(RunDir.open(args.run).config().env, args.out, args.episodes, args.fps)
     policy = load_policy(args.run, args.seed)

@@ -443,7 +443,7 @@ def layer_fields(values: Any) -> list[str]:
 def to_yaml(config: TrainConfig, sources: ConfigSources | None = None) -> str:
     """The config as YAML (read back by `from_yaml`); with `sources`, every value carries its
     source as a comment (`lr: 5.0e-05  # suite mamujoco`)."""
-    from cmat import __version__
+    from cmat.version import __version__
 
     header = f"{VERSION_HEADER}{__version__}\n"
     if sources is None:

@@ -126,8 +126,8 @@ def load_policy(run_dir: str | Path, seed: int | None = None) -> Policy:
 
     Raises CmatError for a directory without a run or checkpoint, a corrupt checkpoint, a seed
     the run did not train, or a run whose files this version of cmat cannot read."""
-    from cmat import __version__
     from cmat.runners.host import build_trainer
+    from cmat.version import __version__
 
     run = RunDir.open(Path(run_dir))
     config = run.config()

@@ -23,14 +23,19 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
 
 from tensorboardX import SummaryWriter
 
 from cmat.config import (
-    ConfigSources, TrainConfig, from_yaml, read_sources, to_yaml, written_by,
+    ConfigSources,
+    TrainConfig,
+    from_yaml,
+    read_sources,
+    to_yaml,
+    written_by,
 )
 from cmat.errors import CmatError
 
@@ -117,7 +122,7 @@ class RunDir:
         try:
             return from_yaml(text)
         except CmatError as error:
-            from cmat import __version__
+            from cmat.version import __version__
 
             written = written_by(text)
             if written == __version__:

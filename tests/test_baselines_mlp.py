@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from optax.tree_utils import tree_get
+from test_training import TINY, fixed_batch, numpy_cmat_loss
 
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
@@ -21,7 +22,6 @@ from cmat.config import NetworkConfig, PPOConfig, load_config
 from cmat.envs.protocol import EnvSpec
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import Trainer
-from test_training import TINY, fixed_batch, numpy_cmat_loss
 
 SPEC = EnvSpec("test", 3, 5, 4, True, 10, False)
 NETWORK = NetworkConfig(n_embd=16, n_head=2)
@@ -113,7 +113,7 @@ def test_happo_phase_moves_only_its_agent_and_keeps_the_others_moments(happo_set
     def phase(agent: jax.Array, params: dict, state: object, key: jax.Array) -> tuple:
         loss = partial(algorithm.agent_loss, agent)
         mask = algorithm.agent_mask(params, agent)
-        return train_phase(setup, loss, mask, params, state, batch, key)
+        return train_phase(setup.optimizer, loss, mask, params, state, batch, key, setup.config.ppo)
 
     after_1, state_1, _ = phase(1, params, state, jax.random.PRNGKey(1))
     after_0, state_0, _ = phase(0, after_1, state_1, jax.random.PRNGKey(2))
@@ -136,7 +136,9 @@ def test_happo_update_trains_every_actor_then_the_critic_with_own_step_counts(
 ) -> None:
     setup, algorithm, params, batch = happo_setup
     state = setup.optimizer.init(params)
-    optimise = jax.jit(lambda p, s, key: algorithm.optimise(setup, p, s, batch, key))
+    optimise = jax.jit(
+        lambda p, s, key: algorithm.update(setup.optimizer, p, s, batch, key, setup.config.ppo)
+    )
     new_params, new_state, metrics = optimise(params, state, jax.random.PRNGKey(3))
     for agent in range(SPEC.num_agents):
         assert differ(rows(params, agent), rows(new_params, agent)), agent

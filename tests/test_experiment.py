@@ -22,9 +22,10 @@ from rliable import metrics as rliable_metrics
 from cmat.cli import main
 from cmat.config import load_config
 from cmat.errors import CmatError
-from cmat.experiments.report import Line, aggregate, improvement_probability, iqm
+from cmat.experiments.lines import Line
 from cmat.experiments.runner import run_experiment
 from cmat.experiments.spec import load_spec
+from cmat.experiments.statistics import aggregate, improvement_probability, iqm
 from cmat.rundir import RunDir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -128,7 +129,8 @@ def test_the_marl_eval_json_loads_in_marl_eval_with_the_numbers_of_results_json(
 ) -> None:
     pytest.importorskip("marl_eval")
     from marl_eval.utils.data_processing_utils import (
-        create_matrices_for_rliable, data_process_pipeline,
+        create_matrices_for_rliable,
+        data_process_pipeline,
     )
 
     out = grid[0]

@@ -22,7 +22,11 @@ from test_ppo import plain_gae
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
 from cmat.algorithms.ppo import (
-    LOG_RATIO_BOUND, clipped_surrogate_loss, masked_mean, normalize, value_loss,
+    LOG_RATIO_BOUND,
+    clipped_surrogate_loss,
+    masked_mean,
+    normalize,
+    value_loss,
 )
 from cmat.cli import main
 from cmat.config import PPOConfig, load_config
@@ -31,7 +35,11 @@ from cmat.envs.protocol import EnvSpec
 from cmat.rundir import RunDir
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import (
-    Trainer, build_setup, init_state, make_batch, nonfinite_code,
+    Trainer,
+    build_setup,
+    init_state,
+    make_batch,
+    nonfinite_code,
 )
 
 REFERENCE = {
@@ -166,8 +174,8 @@ def test_masked_pieces_equal_numpy_references() -> None:
     values, old, targets = (rng.normal(size=(7, 3)).astype(np.float32) for _ in range(3))
     clipped = old + np.clip(values - old, -eps, eps)
     squared = np.maximum(0.5 * (targets - values) ** 2, 0.5 * (targets - clipped) ** 2)
-    got = value_loss(*map(jnp.asarray, (values, old, targets)), eps, False, 10.0, True,
-                     jnp.asarray(alive))
+    value_config = PPOConfig(clip_eps=eps, huber_loss=False, clipped_value_loss=True)
+    got = value_loss(*map(jnp.asarray, (values, old, targets)), value_config, jnp.asarray(alive))
     assert float(got) == pytest.approx(squared[alive].mean(), rel=1e-5)
     normalised = normalize(jnp.asarray(advantages), jnp.asarray(alive), eps=0.0)
     kept = advantages[alive]

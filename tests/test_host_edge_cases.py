@@ -54,7 +54,7 @@ class RosterGame(ParallelEnv):
 
     @staticmethod
     def roster(t: int) -> list[str]:
-        return ["a", "b"] if 2 <= t <= 4 or 6 <= t else ["a"]
+        return ["a", "b"] if 2 <= t <= 4 or t >= 6 else ["a"]
 
     def _observe(self) -> dict[str, np.ndarray]:
         return {agent: np.array([1.0, self._t / 10], np.float32) for agent in self.agents}

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import functools
 import itertools
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -13,11 +14,11 @@ import pytest
 
 from cmat.algorithms.base import Batch
 from cmat.algorithms.cmat import CMAT
-from cmat.algorithms.distributions import action_distribution
 from cmat.algorithms.mat import MAT
 from cmat.algorithms.pmat import PMAT, order_log_prob, sample_order
 from cmat.config import NetworkConfig, PPOConfig, load_config
 from cmat.envs.protocol import EnvSpec
+from cmat.networks.heads import action_distribution
 from cmat.runners.trainer import Trainer
 
 TINY = [

@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 
 from cmat.algorithms.cmat import CMAT
-from cmat.algorithms.distributions import action_distribution
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.cmat import SharedInputDense
+from cmat.networks.heads import SharedInputDense, action_distribution
 from cmat.networks.layers import DecoderBlock, MultiHeadAttention, dense
 
 N_AGENTS, OBS_DIM, N_ACTIONS = 5, 7, 6

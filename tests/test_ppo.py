@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from cmat.algorithms import ppo
+from cmat.config import PPOConfig
 
 
 def plain_gae(rewards, values, dones, last_value, gamma, lam):
@@ -77,9 +78,8 @@ def test_value_loss_matches_numpy_reference(huber: bool, clipped: bool) -> None:
     expected = error(values)
     if clipped:
         expected = np.maximum(expected, error(old + np.clip(values - old, -eps, eps)))
-    loss = ppo.value_loss(
-        jnp.asarray(values), jnp.asarray(old), jnp.asarray(targets), eps, huber, delta, clipped
-    )
+    config = PPOConfig(clip_eps=eps, huber_loss=huber, huber_delta=delta, clipped_value_loss=clipped)
+    loss = ppo.value_loss(jnp.asarray(values), jnp.asarray(old), jnp.asarray(targets), config)
     assert float(loss) == pytest.approx(float(np.mean(expected)), rel=1e-5)
 
 

@@ -11,7 +11,7 @@ from matplotlib.image import imread
 
 from cmat.config import TrainConfig
 from cmat.errors import CmatError
-from cmat.experiments.plots import plot_runs, run_names
+from cmat.plots import plot_runs, run_names
 from cmat.rundir import COLUMNS, RunDir
 
 

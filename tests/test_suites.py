@@ -10,7 +10,13 @@ import yaml
 
 from cmat.cli import main
 from cmat.config import (
-    field_names, from_yaml, layer_fields, load_config, read_sources, resolve_config, to_yaml,
+    field_names,
+    from_yaml,
+    layer_fields,
+    load_config,
+    read_sources,
+    resolve_config,
+    to_yaml,
 )
 from cmat.envs.suites import SUITES
 

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import importlib
-
-from cmat.algorithms.base import Algorithm
 from typing import Any
 
+from cmat.algorithms.base import Algorithm
 from cmat.config import ALGORITHMS, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError

@@ -6,9 +6,11 @@ checkpoints are shared; an algorithm module holds only its network and its loss.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple, Protocol
 
 import jax
+import optax
 
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -41,6 +43,10 @@ class Batch(NamedTuple):
     global_state: Any = None
     """[B, state_dim] the environment's global state (state_dim 0 where it has none); None:
     none given (a critic that needs one raises)"""
+
+
+Loss = Callable[[Params, Batch, PPOConfig], tuple[jax.Array, dict[str, jax.Array]]]
+"""A minibatch loss: (params, batch, ppo) -> (scalar to minimise, metrics)."""
 
 
 def active_mask(batch: Batch, ppo: PPOConfig) -> jax.Array | None:
@@ -93,3 +99,17 @@ class Algorithm(Protocol):
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]: ...
+
+    def update(
+        self, optimizer: optax.GradientTransformation, params: Params, opt_state: Any,
+        batch: Batch, rng: jax.Array, ppo: PPOConfig,
+    ) -> tuple[Params, Any, dict[str, jax.Array]]:
+        """One update's optimisation on a rollout's `batch`: new params, optimiser state and
+        metrics. `cmat.algorithms.sgd.SharedUpdate` gives PPO's epochs × minibatches on `loss`;
+        an algorithm with its own scheme (HAPPO's agent-by-agent phases) overrides it."""
+        ...
+
+    def finetune_labels(self, params: Params, mode: str) -> Any:
+        """A tree like `params` labelling each leaf `sgd.TRAIN` or `sgd.FROZEN` for fine-tuning
+        stage `mode`; raises `CmatError` for an algorithm without fine-tuning stages."""
+        ...

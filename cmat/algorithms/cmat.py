@@ -21,14 +21,21 @@ import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
-from cmat.algorithms.distributions import action_distribution, greedy_action
+from cmat.algorithms.cmat_blocks import finetune_labels
 from cmat.algorithms.ppo import (
-    clipped_surrogate_loss, joint_clip_range, joint_log_ratio, masked_mean, policy_diagnostics,
+    clipped_surrogate_loss,
+    joint_clip_range,
+    joint_log_ratio,
+    masked_mean,
+    policy_diagnostics,
+    total_loss,
     value_loss,
 )
+from cmat.algorithms.sgd import SharedUpdate
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.cmat import CMATNetwork, PolicyOutput
+from cmat.networks.heads import action_distribution, greedy_action
 
 
 class LatentSample(NamedTuple):
@@ -72,7 +79,7 @@ independence are unchanged."""
 
 
 @dataclass(frozen=True)
-class CMAT:
+class CMAT(SharedUpdate):
     network: CMATNetwork
 
     reference_defaults: ClassVar[dict[str, Any]] = {}
@@ -84,7 +91,7 @@ class CMAT:
     }
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "CMAT":
+    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> CMAT:
         return cls(CMATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
@@ -141,6 +148,10 @@ class CMAT:
             log_ratio = log_ratio + output.latent_log_prob - sampled.log_prob
         return log_ratio, output, distribution
 
+    def finetune_labels(self, params: Params, mode: str) -> Any:
+        """CMAT's fine-tuning stages (`cmat_blocks.FINETUNE_TRAINABLE`, Algorithm 1, B)."""
+        return finetune_labels(params, mode)
+
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -164,15 +175,10 @@ class CMAT:
         entropy = masked_mean(entropies, active_mask(batch, ppo))
         if ppo.entropy_reduction == "sum":
             entropy = entropy * entropies.shape[-1]
-        critic_loss = value_loss(
-            output.value, batch.values, batch.targets, ppo.clip_eps,
-            ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,
-        )
-        total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
+        critic_loss = value_loss(output.value, batch.values, batch.targets, ppo)
+        total, terms = total_loss(policy_loss, entropy, critic_loss, ppo)
         metrics = {
-            "policy_loss": policy_loss,
-            "value_loss": critic_loss,
-            "entropy": entropy,
+            **terms,
             **diagnostics,
             **policy_diagnostics(
                 distribution.log_prob(batch.actions) - batch.log_probs, log_ratio, ppo.clip_eps,

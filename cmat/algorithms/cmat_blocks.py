@@ -9,13 +9,12 @@ consensus_source = last); the sets below then simply name fewer blocks.
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Any
 
 import jax
-import optax
 
 from cmat.algorithms.base import Params
+from cmat.algorithms.sgd import FROZEN, TRAIN
 from cmat.errors import CmatError
 
 CMAT_BLOCKS = (
@@ -33,9 +32,6 @@ which is a parameter of the Actor-MLP) and the encoder and Critic-Compressor, wh
 names as neither; action-policy enhancement freezes everything that forms the consensus. With a
 stochastic consensus (`network.consensus_policy`), its policy π_c (`latent_consensus`) is part of
 the consensus generation μ: trained with it, frozen with it."""
-
-TRAIN, FROZEN = "train", "frozen"
-
 
 def finetune_labels(params: Params, mode: str) -> Any:
     """A tree like `params` labelling each leaf TRAIN or FROZEN for fine-tuning `mode`.
@@ -58,19 +54,6 @@ def finetune_labels(params: Params, mode: str) -> Any:
             for name, block in blocks.items()
         }
     }
-
-
-def masked_optimizer(
-    optimizer: optax.GradientTransformation, mode: str
-) -> optax.GradientTransformation:
-    """`optimizer` on the blocks `mode` trains; zero updates (so bit-identical weights) on the rest.
-
-    Gradient clipping inside `optimizer` then sees only the trained blocks' gradients, as freezing
-    by `requires_grad = False` does in the PyTorch reference.
-    """
-    return optax.multi_transform(
-        {TRAIN: optimizer, FROZEN: optax.set_to_zero()}, partial(finetune_labels, mode=mode)
-    )
 
 
 def with_iterations(params: Params, iterations: int) -> Params:

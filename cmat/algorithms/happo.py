@@ -6,7 +6,7 @@ Each update draws a random order i_1..i_n. Agent i_m runs PPO epochs × minibatc
 and the compounding factor M = Π_{k<m} π_{i_k}^new / π_{i_k}^old of the agents updated before
 it, on the same samples and held constant; then the critic is trained on the value loss.
 
-The trainer's one optimiser serves all phases: each phase moves only its own parameters and their
+The run's one optimiser serves all phases: each phase moves only its own parameters and their
 Adam moments, and every phase restarts from the update's step count, so each actor and the critic
 keep their own moments and step count exactly as HARL's separate optimisers do (every phase takes
 the same epochs × minibatches steps).
@@ -14,24 +14,21 @@ the same epochs × minibatches steps).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import distrax
 import jax
 import jax.numpy as jnp
 import optax
 
-from cmat.algorithms.base import Batch, Params, active_mask
-from cmat.algorithms.distributions import action_distribution
+from cmat.algorithms.base import Batch, Loss, Params, active_mask
 from cmat.algorithms.mappo import MAPPO
 from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean, policy_diagnostics
+from cmat.algorithms.sgd import minibatch_sgd
 from cmat.config import PPOConfig
-from cmat.runners import trainer
-
-Loss = Callable[[Params, Batch, PPOConfig], tuple[jax.Array, dict[str, jax.Array]]]
+from cmat.networks.heads import action_distribution
 
 
 def compounding_factors(
@@ -73,29 +70,19 @@ def restricted(
     return optax.GradientTransformation(optimizer.init, update)
 
 
-@dataclass(frozen=True)
-class Phase:
-    """All the trainer's `optimise` reads of an algorithm: the loss it minimises."""
-
-    loss: Loss
-
-
 def train_phase(
-    setup: trainer.TrainSetup, loss: Loss, mask: Params,
-    params: Params, opt_state: Any, batch: Batch, rng: jax.Array,
+    optimizer: optax.GradientTransformation, loss: Loss, mask: Params, params: Params,
+    opt_state: Any, batch: Batch, rng: jax.Array, ppo: PPOConfig,
 ) -> tuple[Params, Any, dict[str, jax.Array]]:
-    """The trainer's PPO epochs × minibatches on `loss`, moving only the params `mask` selects."""
-    phase = dataclasses.replace(
-        setup, algorithm=Phase(loss), optimizer=restricted(setup.optimizer, mask)
-    )
-    return trainer.optimise(phase, params, opt_state, batch, rng)
+    """PPO's epochs × minibatches on `loss`, moving only the params `mask` selects."""
+    return minibatch_sgd(loss, restricted(optimizer, mask), params, opt_state, batch, rng, ppo)
 
 
 @dataclass(frozen=True)
 class HAPPO(MAPPO):
     """Params {"actor": the n actors stacked on a leading agent axis, "critic": ...}.
 
-    `loss` (MAPPO's) is the simultaneous objective, every M = 1; the trainer calls `optimise`.
+    `loss` (MAPPO's) is the simultaneous objective, every M = 1; `update` is the sequential one.
     """
 
     reference_defaults: ClassVar[dict[str, Any]] = {
@@ -164,9 +151,9 @@ class HAPPO(MAPPO):
             "critic": jax.tree.map(lambda _: jnp.asarray(False), params["critic"]),
         }
 
-    def optimise(
-        self, setup: trainer.TrainSetup, params: Params, opt_state: Any, batch: Batch,
-        rng: jax.Array,
+    def update(
+        self, optimizer: optax.GradientTransformation, params: Params, opt_state: Any,
+        batch: Batch, rng: jax.Array, ppo: PPOConfig,
     ) -> tuple[Params, Any, dict[str, jax.Array]]:
         """The sequential update (module docstring): agents in a random order, then the critic.
 
@@ -181,17 +168,16 @@ class HAPPO(MAPPO):
         }
 
         def restart(state: Any) -> Any:
-            return select_state(
-                setup.optimizer, everywhere, state, opt_state, steps_from_new=False
-            )
+            return select_state(optimizer, everywhere, state, opt_state, steps_from_new=False)
 
         def update_agent(carry: tuple, step: tuple[jax.Array, jax.Array]) -> tuple[tuple, dict]:
             params, state, new_log_probs = carry
             agent, key = step
             factor = compounding_factors(new_log_probs, batch.log_probs, order)[:, agent]
             params, state, metrics = train_phase(
-                setup, partial(self.agent_loss, agent), self.agent_mask(params, agent),
+                optimizer, partial(self.agent_loss, agent), self.agent_mask(params, agent),
                 params, restart(state), batch._replace(advantages=factor * batch.advantages), key,
+                ppo,
             )
             updated = self.agent_distribution(params, agent, batch)
             new_log_probs = new_log_probs.at[:, agent].set(
@@ -203,7 +189,8 @@ class HAPPO(MAPPO):
             update_agent, (params, opt_state, batch.log_probs), (order, keys[2:])
         )
         params, state, critic_metrics = train_phase(
-            setup, self.critic_phase_loss, critic_only, params, restart(state), batch, keys[1]
+            optimizer, self.critic_phase_loss, critic_only, params, restart(state), batch,
+            keys[1], ppo,
         )
         metrics = jax.tree.map(jnp.mean, agent_metrics)
         phases = self.num_agents + 1
@@ -212,7 +199,7 @@ class HAPPO(MAPPO):
         return params, state, {
             **metrics,
             **policy_diagnostics(
-                agent_log_ratio, jnp.sum(agent_log_ratio, axis=-1), setup.config.ppo.clip_eps,
+                agent_log_ratio, jnp.sum(agent_log_ratio, axis=-1), ppo.clip_eps,
                 entropies, batch.alive,
             ),
             "value_loss": critic_metrics["value_loss"],

@@ -20,17 +20,22 @@ import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
-from cmat.algorithms.distributions import action_distribution, greedy_action
 from cmat.algorithms.ppo import (
-    clipped_surrogate_loss, masked_mean, policy_diagnostics, value_loss,
+    clipped_surrogate_loss,
+    masked_mean,
+    policy_diagnostics,
+    total_loss,
+    value_loss,
 )
+from cmat.algorithms.sgd import SharedUpdate
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
+from cmat.networks.heads import action_distribution, greedy_action
 from cmat.networks.mlp import MLPActor, MLPCritic
 
 
 @dataclass(frozen=True)
-class MAPPO:
+class MAPPO(SharedUpdate):
     actor: MLPActor
     critic: MLPCritic
     num_agents: int
@@ -49,7 +54,7 @@ class MAPPO:
     targets from the collecting critic, active masks."""
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "MAPPO":
+    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> MAPPO:
         actor = MLPActor(
             config.n_embd, spec.action_dim, spec.discrete, config.init_gain, config.log_std_init
         )
@@ -117,8 +122,7 @@ class MAPPO:
     def critic_loss(self, params: Params, batch: Batch, ppo: PPOConfig) -> jax.Array:
         """The team value loss (one value per sample: no agent to mask)."""
         return value_loss(
-            self.value(params, batch.obs, batch.global_state), batch.values, batch.targets,
-            ppo.clip_eps, ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss,
+            self.value(params, batch.obs, batch.global_state), batch.values, batch.targets, ppo
         )
 
     def loss(
@@ -134,11 +138,9 @@ class MAPPO:
         entropies = distribution.entropy()
         entropy = masked_mean(entropies, mask)
         critic_loss = self.critic_loss(params, batch, ppo)
-        total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
+        total, terms = total_loss(policy_loss, entropy, critic_loss, ppo)
         return total, {
-            "policy_loss": policy_loss,
-            "value_loss": critic_loss,
-            "entropy": entropy,
+            **terms,
             **diagnostics,
             **policy_diagnostics(
                 log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, batch.alive

@@ -22,17 +22,22 @@ import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
-from cmat.algorithms.distributions import action_distribution
 from cmat.algorithms.ppo import (
-    clipped_surrogate_loss, masked_mean, policy_diagnostics, value_loss,
+    clipped_surrogate_loss,
+    masked_mean,
+    policy_diagnostics,
+    total_loss,
+    value_loss,
 )
+from cmat.algorithms.sgd import SharedUpdate
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
+from cmat.networks.heads import action_distribution
 from cmat.networks.mat import MATNetwork, MATOutput
 
 
 @dataclass(frozen=True)
-class MAT:
+class MAT(SharedUpdate):
     network: MATNetwork
     per_agent_gae: bool = False
     """Values are per agent ([n], `ppo.per_agent_gae`), else their team mean ([])."""
@@ -49,7 +54,7 @@ class MAT:
     hyper-parameters are the dataclass defaults."""
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "MAT":
+    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> MAT:
         network = MATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete)
         return cls(network, ppo.per_agent_gae)
 
@@ -137,13 +142,11 @@ class MAT:
         entropy = masked_mean(entropies, mask)
         critic_loss = value_loss(
             output.agent_values, old_agent_values, per_agent(batch.targets, log_ratio.shape),
-            ppo.clip_eps, ppo.huber_loss, ppo.huber_delta, ppo.clipped_value_loss, mask,
+            ppo, mask,
         )
-        total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
+        total, terms = total_loss(policy_loss, entropy, critic_loss, ppo)
         metrics = {
-            "policy_loss": policy_loss,
-            "value_loss": critic_loss,
-            "entropy": entropy,
+            **terms,
             **diagnostics,
             **policy_diagnostics(
                 log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, batch.alive

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.mat import MAT
 from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean
+from cmat.algorithms.sgd import SharedUpdate
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.mat import OrderScorer
@@ -49,7 +50,7 @@ def sample_order(scores: jax.Array, key: jax.Array) -> jax.Array:
 
 
 @dataclass(frozen=True)
-class PMAT:
+class PMAT(SharedUpdate):
     mat: MAT
     scorer: OrderScorer
 
@@ -58,7 +59,7 @@ class PMAT:
     presets: ClassVar[dict[str, dict[str, Any]]] = MAT.presets
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> "PMAT":
+    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> PMAT:
         return cls(MAT.build(config, spec, ppo), OrderScorer(config.n_embd, config.init_gain))
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:

@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from cmat.config import PPOConfig
+
 
 def generalized_advantages(
     rewards: jax.Array,
@@ -164,26 +166,35 @@ def value_loss(
     values: jax.Array,
     old_values: jax.Array,
     targets: jax.Array,
-    clip_eps: float,
-    huber: bool,
-    huber_delta: float,
-    clipped: bool,
+    ppo: PPOConfig,
     mask: jax.Array | None = None,
 ) -> jax.Array:
-    """Critic loss: squared or Huber error to the targets, optionally the clipped PPO form,
-    averaged over the entries where `mask` holds (every entry without one)."""
+    """Critic loss: squared error to the targets, or the Huber loss with `ppo.huber_delta`
+    (`ppo.huber_loss`), in the clipped PPO form with `ppo.clip_eps` around `old_values`
+    (`ppo.clipped_value_loss`), averaged over the entries where `mask` holds (every entry
+    without one). Shapes: any, all alike (mask broadcast to them)."""
 
     def error(prediction: jax.Array) -> jax.Array:
         residual = targets - prediction
-        if huber:
-            return optax.huber_loss(residual, delta=huber_delta)
+        if ppo.huber_loss:
+            return optax.huber_loss(residual, delta=ppo.huber_delta)
         return 0.5 * jnp.square(residual)
 
     loss = error(values)
-    if clipped:
-        clipped_values = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
+    if ppo.clipped_value_loss:
+        clipped_values = old_values + jnp.clip(values - old_values, -ppo.clip_eps, ppo.clip_eps)
         loss = jnp.maximum(loss, error(clipped_values))
     return masked_mean(loss, mask)
+
+
+def total_loss(
+    policy_loss: jax.Array, entropy: jax.Array, critic_loss: jax.Array, ppo: PPOConfig
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """PPO's minimised objective L = L_policy − c_ent·H + c_v·L_value (paper Algorithm 1; the
+    reference MAT's `policy_loss - dist_entropy * entropy_coef + value_loss * value_loss_coef`)
+    and its three terms as metrics (`policy_loss`, `value_loss`, `entropy`)."""
+    total = policy_loss - ppo.ent_coef * entropy + ppo.value_coef * critic_loss
+    return total, {"policy_loss": policy_loss, "value_loss": critic_loss, "entropy": entropy}
 
 
 def normalize(x: jax.Array, mask: jax.Array | None = None, eps: float = 1e-8) -> jax.Array:

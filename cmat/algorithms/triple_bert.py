@@ -23,5 +23,5 @@ class TripleBERT(CMAT):
     @classmethod
     def build(
         cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()
-    ) -> "TripleBERT":
+    ) -> TripleBERT:
         return cls(TripleBERTNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))

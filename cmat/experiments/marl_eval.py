@@ -22,7 +22,7 @@ import math
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from cmat.experiments.report import Line
+    from cmat.experiments.lines import Line
 
 METRICS = ("episode_return", "win_rate")
 

@@ -20,13 +20,19 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import distrax
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import flax.linen as nn
 
 from cmat.config import NetworkConfig, resolve_iterations
+from cmat.networks.heads import ActionHead, ValueHead, mask_unavailable
 from cmat.networks.layers import (
-    HIDDEN_GAIN, SMALL_GAIN, Compressor, DecoderBlock, KeyValues, ObservationEncoder, dense,
+    SMALL_GAIN,
+    Compressor,
+    DecoderBlock,
+    KeyValues,
+    ObservationEncoder,
+    dense,
 )
 
 
@@ -48,73 +54,6 @@ class PolicyOutput(NamedTuple):
     """[...] log π_c(latent | O); None for the deterministic consensus."""
     latent_entropy: Any = None
     """[...] entropy of π_c(· | O); None for the deterministic consensus."""
-
-
-class SharedInputDense(nn.Module):
-    """Dense([x_i; s]) for every token x_i and one vector s shared by all of them.
-
-    W[x_i; s] + b = W_x x_i + (W_s s + b): the shared half is multiplied once per team instead
-    of once per agent. Parameters are those of `dense` on the concatenation, so the two forms
-    are interchangeable.
-    """
-
-    features: int
-
-    @nn.compact
-    def __call__(self, tokens: jax.Array, shared: jax.Array | None = None) -> jax.Array:
-        """tokens [..., n, a], shared [..., s] or None -> [..., n, features]."""
-        token_features = tokens.shape[-1]
-        shared_features = 0 if shared is None else shared.shape[-1]
-        kernel = self.param(
-            "kernel", nn.initializers.orthogonal(HIDDEN_GAIN),
-            (token_features + shared_features, self.features),
-        )
-        bias = self.param("bias", nn.initializers.zeros, (self.features,))
-        if shared is None:
-            return tokens @ kernel + bias
-        return tokens @ kernel[:token_features] + (shared @ kernel[token_features:] + bias)[
-            ..., None, :
-        ]
-
-
-class ActionHead(nn.Module):
-    """Actor-MLP([ô_i; c]) (paper eq. actor_MLP), shared across agents.
-
-    `shared` is the team-wide half of every agent's input (CMAT's consensus c); heads whose
-    input is per-agent only (MAT, Triple-BERT) pass None.
-    """
-
-    n_embd: int
-    action_dim: int
-    discrete: bool
-    init_gain: float
-    log_std_init: float = 1.0
-    """Initial log-std of continuous heads (std = sigmoid(log_std) · 0.5, reference MAT)."""
-
-    @nn.compact
-    def __call__(
-        self, features: jax.Array, shared: jax.Array | None = None
-    ) -> tuple[jax.Array, jax.Array]:
-        first = SharedInputDense(self.n_embd, name="Dense_0")(features, shared)
-        hidden = nn.LayerNorm()(nn.gelu(first))
-        params = dense(self.action_dim, self.init_gain, name="Dense_1")(hidden)
-        log_std = self.param(
-            "log_std", nn.initializers.constant(self.log_std_init),
-            (0 if self.discrete else self.action_dim,),
-        )
-        return params, log_std
-
-
-class ValueHead(nn.Module):
-    """Critic-MLP(e0) -> V(O) (paper eq. critic); the output layer starts with `gain` (the
-    reference MAT's value head: gain 0.01)."""
-
-    n_embd: int
-    gain: float = SMALL_GAIN
-
-    @nn.compact
-    def __call__(self, e0: jax.Array) -> jax.Array:
-        return dense(1, self.gain)(nn.gelu(dense(self.n_embd)(e0)))[..., 0]
 
 
 class LatentConsensus(nn.Module):
@@ -253,13 +192,9 @@ class CMATNetwork(nn.Module):
             conditioning = self.latent_consensus.conditioning(consensus, latent)
             latent_log_prob, latent_entropy = distribution.log_prob(latent), distribution.entropy()
         action_params, log_std = self.actor_mlp(encoded, conditioning)
-        if self.discrete:
-            action_params = jnp.where(action_mask, action_params, MASKED_LOGIT)
+        action_params = mask_unavailable(action_params, action_mask, self.discrete)
         return PolicyOutput(
             action_params, log_std, self.critic_mlp(e0), consensus,
             latent, latent_log_prob, latent_entropy,
         )
 
-
-MASKED_LOGIT = -1e9
-"""Logit of an unavailable action: exp underflows to exactly 0 probability in float32."""

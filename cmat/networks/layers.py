@@ -6,9 +6,9 @@ post-LayerNorm, as in the reference MAT implementation.
 
 from __future__ import annotations
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import flax.linen as nn
 import numpy as np
 
 HIDDEN_GAIN = float(np.sqrt(2.0))

@@ -18,15 +18,20 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import flax.linen as nn
 
-from cmat.algorithms.distributions import action_distribution, greedy_action
 from cmat.config import NetworkConfig
-from cmat.networks.cmat import MASKED_LOGIT, ActionHead
+from cmat.networks.heads import ActionHead, action_distribution, greedy_action, mask_unavailable
 from cmat.networks.layers import (
-    SMALL_GAIN, FeedForward, KeyValues, MultiHeadAttention, ObservationEncoder, dense, extend,
+    SMALL_GAIN,
+    FeedForward,
+    KeyValues,
+    MultiHeadAttention,
+    ObservationEncoder,
+    dense,
+    extend,
 )
 
 
@@ -153,9 +158,7 @@ class MATNetwork(nn.Module):
         self, features: jax.Array, action_mask: jax.Array
     ) -> tuple[jax.Array, jax.Array]:
         params, log_std = self.head(features)
-        if self.discrete:
-            params = jnp.where(action_mask, params, MASKED_LOGIT)
-        return params, log_std
+        return mask_unavailable(params, action_mask, self.discrete), log_std
 
     def decode(
         self, encoded: jax.Array, action_mask: jax.Array, order: jax.Array, key: jax.Array | None

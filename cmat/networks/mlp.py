@@ -7,11 +7,10 @@ gain. Arrays carry any number of leading batch axes.
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import flax.linen as nn
+import jax
 
-from cmat.networks.cmat import MASKED_LOGIT
+from cmat.networks.heads import mask_unavailable
 from cmat.networks.layers import dense
 
 
@@ -45,9 +44,7 @@ class MLPActor(nn.Module):
             "log_std", nn.initializers.constant(self.log_std_init),
             (0 if self.discrete else self.action_dim,),
         )
-        if self.discrete:
-            action_params = jnp.where(action_mask, action_params, MASKED_LOGIT)
-        return action_params, log_std
+        return mask_unavailable(action_params, action_mask, self.discrete), log_std
 
 
 class MLPCritic(nn.Module):

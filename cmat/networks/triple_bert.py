@@ -11,12 +11,11 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
-import jax.numpy as jnp
 import flax.linen as nn
+import jax
 
 from cmat.config import NetworkConfig
-from cmat.networks.cmat import MASKED_LOGIT, ActionHead, ValueHead
+from cmat.networks.heads import ActionHead, ValueHead, mask_unavailable
 from cmat.networks.layers import Compressor, ObservationEncoder
 
 
@@ -53,8 +52,7 @@ class TripleBERTNetwork(nn.Module):
     def __call__(self, obs: jax.Array, action_mask: jax.Array) -> TripleBERTOutput:
         encoded = self.encoder(obs)
         action_params, log_std = self.actor_mlp(encoded)
-        if self.discrete:
-            action_params = jnp.where(action_mask, action_params, MASKED_LOGIT)
+        action_params = mask_unavailable(action_params, action_mask, self.discrete)
         return TripleBERTOutput(
             action_params, log_std, self.critic_mlp(self.critic_compressor(encoded))
         )

@@ -32,7 +32,13 @@ from cmat.envs.host.pool import COUNTERS, InProcessPool, WorkerPool, make_pool
 from cmat.envs.host.protocol import HostTimeStep
 from cmat.envs.protocol import EnvSpec, TimeStep
 from cmat.runners.trainer import (
-    TrainerState, TrainSetup, Transition, build_setup, env_actions, learn, restore_state,
+    TrainerState,
+    TrainSetup,
+    Transition,
+    build_setup,
+    env_actions,
+    learn,
+    restore_state,
     summarise_updates,
 )
 

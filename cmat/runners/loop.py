@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from cmat.config import TrainConfig
 from cmat.errors import CmatError
-from cmat.experiments.plots import plot_runs
+from cmat.plots import plot_runs
 from cmat.rundir import DIAGNOSTIC_COLUMNS, PER_RUN_PREFIXES, Row, RunDir
 
 if TYPE_CHECKING:

@@ -8,8 +8,10 @@ gives the whole run as one pure function, PureJaxRL style.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple
+from functools import partial
+from typing import Any, NamedTuple
 
 import flax.serialization
 import flax.struct
@@ -19,13 +21,14 @@ import numpy as np
 import optax
 
 from cmat.algorithms import build_algorithm
-from cmat.algorithms.base import Batch, Params, Algorithm
-from cmat.algorithms.cmat_blocks import masked_optimizer
 from cmat.algorithms import ppo as ppo_lib
+from cmat.algorithms.base import Algorithm, Batch, Params
+from cmat.algorithms.sgd import finetune_optimizer
 from cmat.config import TrainConfig
 from cmat.envs import make_env
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
 from cmat.errors import CmatError
+
 
 @flax.struct.dataclass
 class TrainerState:
@@ -82,19 +85,20 @@ def build_setup(config: TrainConfig, env: MarlEnv | None = None) -> TrainSetup:
     one that holds only its `spec`, since it steps its environments outside the program)."""
     env = env if env is not None else make_env(config.env, **config.env_kwargs)
     algorithm = build_algorithm(config.algo, config.network, env.spec, config.ppo)
-    return TrainSetup(config, env, algorithm, build_optimizer(config))
+    return TrainSetup(config, env, algorithm, build_optimizer(config, algorithm))
 
 
-def build_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+def build_optimizer(config: TrainConfig, algorithm: Algorithm) -> optax.GradientTransformation:
     """Adam after global-norm clipping; a fine-tuning run (`config.finetune`) applies it only to
-    the blocks its stage trains and zero updates to the frozen ones (cmat_blocks)."""
+    the parameters the algorithm's `finetune_labels` train in that stage, and zero updates to
+    the frozen ones."""
     optimizer = optax.chain(
         optax.clip_by_global_norm(config.ppo.max_grad_norm),
         optax.adam(config.ppo.lr, eps=config.ppo.adam_eps),
     )
     if config.finetune is None:
         return optimizer
-    return masked_optimizer(optimizer, config.finetune)
+    return finetune_optimizer(optimizer, partial(algorithm.finetune_labels, mode=config.finetune))
 
 
 def init_state(setup: TrainSetup, rng: jax.Array) -> TrainerState:
@@ -245,61 +249,11 @@ def make_batch(
 def optimise(
     setup: TrainSetup, params: Params, opt_state: Any, batch: Batch, rng: jax.Array
 ) -> tuple[Params, Any, dict[str, jax.Array]]:
-    """PPO epochs over shuffled minibatches; returns the loss metrics averaged over steps.
-
-    With `ppo.target_kl`, the epochs after the first whose mean approximate KL exceeds it are
-    skipped, and `epochs_run` says how many ran."""
-    ppo = setup.config.ppo
-    grad_fn = jax.value_and_grad(setup.algorithm.loss, has_aux=True)
-
-    def minibatch_step(carry: tuple[Params, Any], minibatch: Batch) -> tuple[tuple[Params, Any], dict]:
-        params, opt_state = carry
-        (loss, metrics), grads = grad_fn(params, minibatch, ppo)
-        updates, opt_state = setup.optimizer.update(grads, opt_state, params)
-        metrics = {
-            **metrics, "loss": loss, "grad_norm": optax.tree.norm(grads),
-            **ppo_lib.block_grad_norms(grads),
-        }
-        return (optax.apply_updates(params, updates), opt_state), metrics
-
-    def epoch(carry: tuple[Params, Any], key: jax.Array) -> tuple[tuple[Params, Any], dict]:
-        size = batch.advantages.shape[0]
-        order = jax.random.permutation(key, size)
-        minibatches = jax.tree.map(
-            lambda x: x[order].reshape(
-                ppo.num_minibatches, size // ppo.num_minibatches, *x.shape[1:]
-            ),
-            batch,
-        )
-        return jax.lax.scan(minibatch_step, carry, minibatches)
-
-    keys = jax.random.split(rng, ppo.epochs)
-    if ppo.target_kl is None:
-        (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
-        return params, opt_state, jax.tree.map(jnp.mean, metrics)
-    target_kl = ppo.target_kl
-
-    def early_stopping_epoch(carry: tuple, key: jax.Array) -> tuple[tuple, dict]:
-        """An epoch unless an earlier one passed `ppo.target_kl` (then the state is kept)."""
-        params, opt_state, stopped = carry
-        shapes = jax.eval_shape(lambda c: epoch(c, key)[1], (params, opt_state))
-        skipped = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
-        (params, opt_state), metrics = jax.lax.cond(
-            stopped, lambda c: (c, skipped), lambda c: epoch(c, key), (params, opt_state)
-        )
-        ran = ~stopped
-        stopped = stopped | (jnp.mean(metrics["approx_kl"]) > target_kl)
-        return (params, opt_state, stopped), {**metrics, "ran": ran}
-
-    (params, opt_state, _), metrics = jax.lax.scan(
-        early_stopping_epoch, (params, opt_state, jnp.asarray(False)), keys
+    """The algorithm's `update` of one rollout's batch with the run's optimiser and PPO config
+    (for the shared PPO: `cmat.algorithms.sgd.minibatch_sgd` on its loss)."""
+    return setup.algorithm.update(
+        setup.optimizer, params, opt_state, batch, rng, setup.config.ppo
     )
-    ran = metrics.pop("ran")
-    epochs_run = jnp.sum(ran)
-    averaged = jax.tree.map(
-        lambda x: jnp.sum(jnp.mean(x, axis=1) * ran) / jnp.maximum(epochs_run, 1), metrics
-    )
-    return params, opt_state, {**averaged, "epochs_run": epochs_run.astype(jnp.float32)}
 
 
 def update_step(setup: TrainSetup, state: TrainerState) -> tuple[TrainerState, dict[str, jax.Array]]:
@@ -329,13 +283,11 @@ def learn(
     setup: TrainSetup, state: TrainerState, rollout: Transition
 ) -> tuple[TrainerState, dict[str, jax.Array]]:
     """Everything of an update after collection: GAE from the target critic (bootstrapped from
-    `state.timestep`, the observation after the rollout), PPO (or the algorithm's own
-    `optimise`), the target critic's soft update and the rollout's episode sums. The host runner
+    `state.timestep`, the observation after the rollout), the algorithm's `update`, the target critic's soft update and the rollout's episode sums. The host runner
     calls it on rollouts it collected outside the program."""
     value_norm, batch = make_batch(setup, state, rollout)
     rng, update_key = jax.random.split(state.rng)
-    optimise_fn = getattr(setup.algorithm, "optimise", optimise)
-    params, opt_state, metrics = optimise_fn(setup, state.params, state.opt_state, batch, update_key)
+    params, opt_state, metrics = optimise(setup, state.params, state.opt_state, batch, update_key)
     target_params = optax.incremental_update(
         params, state.target_params, setup.config.ppo.target_tau
     )

@@ -37,7 +37,8 @@ How a ParallelEnv maps onto the protocol (README, "Host environments"):
 from __future__ import annotations
 
 import importlib
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 

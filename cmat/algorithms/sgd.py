@@ -1,0 +1,124 @@
+"""PPO's epochs × minibatches of gradient steps, as one function of the loss.
+
+The loss is a value, as in Brax's `training/gradients.py`: the shared update passes an
+algorithm's `loss`, HAPPO one loss per agent phase. The optimiser is passed too, so a caller can
+restrict it (fine-tuning masks, HAPPO's per-agent phases) without this module knowing why.
+`SharedUpdate` is the `Algorithm.update` and `Algorithm.finetune_labels` of every algorithm
+that does not define its own.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from cmat.algorithms.base import Batch, Loss, Params
+from cmat.algorithms.ppo import block_grad_norms
+from cmat.config import PPOConfig
+from cmat.errors import CmatError
+
+Metrics = dict[str, jax.Array]
+
+TRAIN, FROZEN = "train", "frozen"
+"""The labels of `Algorithm.finetune_labels`."""
+
+
+def minibatch_sgd(
+    loss: Loss, optimizer: optax.GradientTransformation, params: Params, opt_state: Any,
+    batch: Batch, rng: jax.Array, ppo: PPOConfig,
+) -> tuple[Params, Any, Metrics]:
+    """`ppo.epochs` passes over `batch` [B, ...] in `ppo.num_minibatches` shuffled minibatches,
+    one optimiser step on `loss(params, minibatch, ppo)` each.
+
+    Returns the new parameters and optimiser state and the loss's metrics averaged over the
+    steps, with `loss`, `grad_norm` (global norm before clipping) and the per-block gradient
+    norms (`cmat.algorithms.ppo.block_grad_norms`). With `ppo.target_kl`, the epochs after the
+    first whose mean `approx_kl` exceeds it are skipped, the averages run over the epochs that
+    ran, and `epochs_run` says how many did. B must be divisible by `ppo.num_minibatches`
+    (`TrainConfig.validate` checks it).
+    """
+    grad_fn = jax.value_and_grad(loss, has_aux=True)
+
+    def minibatch_step(carry: tuple[Params, Any], minibatch: Batch) -> tuple[tuple[Params, Any], Metrics]:
+        params, opt_state = carry
+        (value, metrics), grads = grad_fn(params, minibatch, ppo)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        metrics = {
+            **metrics, "loss": value, "grad_norm": optax.tree.norm(grads),
+            **block_grad_norms(grads),
+        }
+        return (optax.apply_updates(params, updates), opt_state), metrics
+
+    def epoch(carry: tuple[Params, Any], key: jax.Array) -> tuple[tuple[Params, Any], Metrics]:
+        size = batch.advantages.shape[0]
+        order = jax.random.permutation(key, size)
+        minibatches = jax.tree.map(
+            lambda x: x[order].reshape(
+                ppo.num_minibatches, size // ppo.num_minibatches, *x.shape[1:]
+            ),
+            batch,
+        )
+        return jax.lax.scan(minibatch_step, carry, minibatches)
+
+    keys = jax.random.split(rng, ppo.epochs)
+    if ppo.target_kl is None:
+        (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
+        return params, opt_state, jax.tree.map(jnp.mean, metrics)
+    target_kl = ppo.target_kl
+
+    def early_stopping_epoch(
+        carry: tuple[Params, Any, jax.Array], key: jax.Array
+    ) -> tuple[tuple[Params, Any, jax.Array], Metrics]:
+        """An epoch unless an earlier one passed `ppo.target_kl` (then the state is kept)."""
+        params, opt_state, stopped = carry
+        shapes = jax.eval_shape(lambda c: epoch(c, key)[1], (params, opt_state))
+        skipped = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+        (params, opt_state), metrics = jax.lax.cond(
+            stopped, lambda c: (c, skipped), lambda c: epoch(c, key), (params, opt_state)
+        )
+        ran = ~stopped
+        stopped = stopped | (jnp.mean(metrics["approx_kl"]) > target_kl)
+        return (params, opt_state, stopped), {**metrics, "ran": ran}
+
+    (params, opt_state, _), metrics = jax.lax.scan(
+        early_stopping_epoch, (params, opt_state, jnp.asarray(False)), keys
+    )
+    ran = metrics.pop("ran")
+    epochs_run = jnp.sum(ran)
+    averaged = jax.tree.map(
+        lambda x: jnp.sum(jnp.mean(x, axis=1) * ran) / jnp.maximum(epochs_run, 1), metrics
+    )
+    return params, opt_state, {**averaged, "epochs_run": epochs_run.astype(jnp.float32)}
+
+
+def finetune_optimizer(
+    optimizer: optax.GradientTransformation, labels: Any
+) -> optax.GradientTransformation:
+    """`optimizer` on the leaves `labels` (a tree like the params, or a function of them) marks
+    TRAIN; zero updates, so bit-identical weights, on those it marks FROZEN.
+
+    Gradient clipping inside `optimizer` then sees only the trained leaves' gradients, as
+    freezing by `requires_grad = False` does in the PyTorch reference.
+    """
+    return optax.multi_transform({TRAIN: optimizer, FROZEN: optax.set_to_zero()}, labels)
+
+
+class SharedUpdate:
+    """`Algorithm.update` as PPO: `minibatch_sgd` on the algorithm's own `loss`; and no
+    fine-tuning stages. Algorithms inherit it and override what they do differently."""
+
+    def loss(self, params: Params, batch: Batch, ppo: PPOConfig) -> tuple[jax.Array, Metrics]:
+        raise NotImplementedError
+
+    def update(
+        self, optimizer: optax.GradientTransformation, params: Params, opt_state: Any,
+        batch: Batch, rng: jax.Array, ppo: PPOConfig,
+    ) -> tuple[Params, Any, Metrics]:
+        return minibatch_sgd(self.loss, optimizer, params, opt_state, batch, rng, ppo)
+
+    def finetune_labels(self, params: Params, mode: str) -> Any:
+        raise CmatError(f"{type(self).__name__} has no fine-tuning stages (asked for {mode!r})")
+

@@ -1,0 +1,218 @@
+"""Executing an experiment's runs: as `python -m cmat train|finetune` subprocesses, K at once on
+this machine, or as Ray tasks on a cluster (`--ray ADDRESS`; every node needs cmat installed and
+OUT on a shared filesystem). A fine-tuning stage starts once its base run has finished; a run to
+redo is first moved to `OUT/discarded/`.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from cmat.errors import CmatError
+from cmat.experiments.plan import FINISHED, RESUME, Run, inspect, say
+
+
+def discard(run: Run, out: Path) -> None:
+    """Move a directory that cannot be used out of the grid (kept for inspection)."""
+    if not run.path.exists():
+        return
+    target = out / "discarded" / f"{run.name.replace('/', '__')}-{time.strftime('%Y%m%d-%H%M%S')}"
+    number = 1
+    while target.exists():
+        target = target.with_name(f"{target.name}-{number}")
+        number += 1
+    target.parent.mkdir(parents=True, exist_ok=True)
+    run.path.rename(target)
+    run.note += f"; moved to {target.relative_to(out)}"
+
+
+@contextmanager
+def experiment_lock(out: Path) -> Iterator[None]:
+    """One `cmat experiment` at a time per directory (released by the OS if it dies)."""
+    with (out / ".lock").open("w") as file:
+        try:
+            fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise CmatError(f"another cmat experiment is running in {out}") from None
+        yield
+
+
+def command(run: Run) -> list[str]:
+    """The `cmat` arguments that bring `run` to completion."""
+    assert run.config is not None
+    steps = str(run.config.total_steps)
+    if run.status == RESUME:
+        return ["train", "--resume", str(run.path), "--steps", steps]
+    if run.variant.finetune is not None:
+        assert run.base is not None
+        overrides = ["--set", *run.variant.overrides] if run.variant.overrides else []
+        return ["finetune", "--from", str(run.base.path), "--mode", run.variant.finetune,
+                "--steps", steps, "--out", str(run.path), *overrides]
+    return ["train", "--out", str(run.path), "--set", *run.overrides]
+
+
+def default_parallel() -> int:
+    """Runs at once on this machine: one per two cores (XLA uses several threads per run),
+    at most one per 4 GiB of available memory."""
+    cpus = len(os.sched_getaffinity(0))
+    available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2**30
+    return max(1, min(cpus // 2, int(available // 4)))
+
+
+def execute(jobs: list[Run], executor: Any, limit: int, out: Path) -> None:
+    """Run `jobs` (fine-tuning stages after their base) with at most `limit` at once."""
+    pending = list(jobs)
+    running: dict[Any, tuple[Run, float]] = {}
+    total, finished = len(jobs), 0
+    try:
+        while pending or running:
+            for run in list(pending):
+                if len(running) >= limit:
+                    break
+                base = run.base
+                if base is not None and base in jobs and base.outcome is None:
+                    continue
+                pending.remove(run)
+                if base is not None and not base.complete:
+                    run.outcome = f"skipped: its base run {base.name} did not complete"
+                    say(f"[skip] {run.name}: {run.outcome}")
+                    continue
+                run.log = out / "logs" / f"{run.name}.log"
+                run.log.parent.mkdir(parents=True, exist_ok=True)
+                argv = command(run)
+                with run.log.open("a") as log:
+                    log.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} cmat {' '.join(argv)}\n")
+                handle = executor.submit(argv, run.log)
+                running[handle] = (run, time.monotonic())
+                say(f"[start] {run.name} ({run.status}; log {run.log.relative_to(out)})")
+            if not running:
+                continue
+            handle, code = executor.wait(list(running))
+            run, started = running.pop(handle)
+            finished += 1
+            run.outcome = judge(run, code)
+            seconds = time.monotonic() - started
+            result = "done" if run.outcome == "ok" else f"FAILED: {run.outcome}"
+            say(f"[{finished}/{total}] {run.name}: {result} ({seconds:.0f} s)")
+    except BaseException:
+        executor.stop(list(running))
+        raise
+
+
+def judge(run: Run, code: int | str) -> str:
+    """'ok' when the run exited 0 and its directory is now complete; else what went wrong."""
+    if isinstance(code, str):
+        return code
+    if code != 0:
+        return f"exit code {code}: {last_error(run.log)}"
+    status, note = inspect(run)
+    if status != FINISHED:
+        return f"exited 0 but the run directory is not complete: {note}"
+    run.status = FINISHED
+    return "ok"
+
+
+def last_error(log: Path | None) -> str:
+    if log is None or not log.is_file():
+        return "no log"
+    lines = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("cmat: error:")]
+    raised = [line for line in lines if re.match(r"^[\w.]+(Error|Exception|Interrupt)\b", line)]
+    return (errors or raised or lines or ["no output"])[-1][:300]
+
+
+def run_cmat(argv: list[str], log_path: str, cache: str) -> int:
+    """Run `python -m cmat ARGV` with this interpreter, appending its output to `log_path`
+    (what a Ray task executes on its node)."""
+    with open(log_path, "a") as log:
+        return subprocess.run([sys.executable, "-m", "cmat", *argv], stdout=log,
+                              stderr=subprocess.STDOUT, env=child_env(cache), check=False).returncode
+
+
+def child_env(cache: str, parent: int | None = None) -> dict[str, str]:
+    """The environment of a run: unbuffered output; JAX's persistent compilation cache in the
+    experiment directory (runs of a grid compile the same programs: a rerun or a resumed run
+    loads them instead of compiling, unless JAX_COMPILATION_CACHE_DIR is set already); and the
+    pid whose death should end the run (see `cmat.__main__`)."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "TF_CPP_MIN_LOG_LEVEL": "2"}
+    env.setdefault("JAX_COMPILATION_CACHE_DIR", cache)
+    if parent is not None:
+        env["CMAT_PARENT_PID"] = str(parent)
+    return env
+
+
+class LocalExecutor:
+    """Runs as subprocesses of this process; each ends when this process dies (a killed
+    experiment leaves no run writing into its directory)."""
+
+    def __init__(self, cache: Path) -> None:
+        self.cache = str(cache)
+
+    def submit(self, argv: list[str], log: Path) -> subprocess.Popen:
+        with log.open("a") as file:
+            return subprocess.Popen(
+                [sys.executable, "-m", "cmat", *argv], stdout=file, stderr=subprocess.STDOUT,
+                env=child_env(self.cache, parent=os.getpid()),
+            )
+
+    def wait(self, handles: list[subprocess.Popen]) -> tuple[subprocess.Popen, int]:
+        while True:
+            for process in handles:
+                code = process.poll()
+                if code is not None:
+                    return process, code
+            time.sleep(0.2)
+
+    def stop(self, handles: list[subprocess.Popen]) -> None:
+        """Interrupt running runs (they keep their last checkpoint), then kill stragglers."""
+        for process in handles:
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 30
+        for process in handles:
+            try:
+                process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+class RayExecutor:
+    """Runs as Ray tasks of one CPU each on the cluster at `address` (`ray.init(address)`)."""
+
+    def __init__(self, address: str, cache: Path) -> None:
+        self.cache = str(cache)
+        try:
+            import ray
+        except ImportError:
+            raise CmatError("--ray needs Ray: pip install 'cmat[ray]'") from None
+        self.ray = ray
+        try:
+            ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
+        except Exception as error:  # Ray raises ConnectionError, RuntimeError, ValueError
+            raise CmatError(f"cannot connect to the Ray cluster at {address}: "
+                            f"{str(error).splitlines()[0] if str(error) else error!r}") from None
+        self.task = ray.remote(num_cpus=1)(run_cmat)
+
+    def submit(self, argv: list[str], log: Path) -> Any:
+        return self.task.remote(argv, str(log), self.cache)
+
+    def wait(self, handles: list[Any]) -> tuple[Any, int | str]:
+        ready, _ = self.ray.wait(handles, num_returns=1)
+        try:
+            return ready[0], int(self.ray.get(ready[0]))
+        except Exception as error:  # the task or its node died
+            return ready[0], f"Ray task failed: {type(error).__name__}"
+
+    def stop(self, handles: list[Any]) -> None:
+        for ref in handles:
+            self.ray.cancel(ref, force=True)

@@ -1,0 +1,93 @@
+"""The figures of an experiment: `figure_main.png` (paper Fig. 3), a panel per task, a line per
+algorithm / variant of figure `main`, greedy evaluation metric against env steps, mean ± std
+over seeds shaded, published reference figures as dashed horizontal lines; and
+`figure_ablation.png` (paper Fig. 4) for the variants of figure `ablation`.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from matplotlib.figure import Figure
+
+from cmat.experiments.lines import METRIC_NAMES, Line, matching_references, reference_label
+from cmat.experiments.plan import Plan
+
+
+def draw(
+    plan: Plan, lines: dict[str, list[Line]], metrics: dict[str, str],
+    references: list[dict[str, Any]], figure_kind: str, path: Path,
+) -> None:
+    """A panel per task; `figure_kind` selects the variants drawn (main or ablation)."""
+    envs = plan.spec.envs
+    columns = min(3, len(envs))
+    rows = math.ceil(len(envs) / columns)
+    figure = Figure(figsize=(5.2 * columns, 3.9 * rows + 0.9), layout="constrained")
+    axes_grid = figure.subplots(rows, columns, squeeze=False)
+    palette = [f"C{i}" for i in range(10)]
+    colors: dict[str, str] = {}
+    handles: dict[str, Any] = {}
+    for index, env in enumerate(envs):
+        axes = axes_grid[index // columns][index % columns]
+        axes.set_title(env.label, fontsize="medium")
+        metric = metrics[env.id]
+        drawn = [line for line in lines.get(env.id, []) if figure_kind in line.figures
+                 and (figure_kind == "main" or line.algo == "cmat")]
+        if env.id in plan.unavailable or not drawn:
+            reason = plan.unavailable.get(env.id, "no complete run")
+            axes.text(0.5, 0.5, wrap(f"unavailable: {reason}" if env.id in plan.unavailable
+                                     else reason, 48),
+                      ha="center", va="center", fontsize="small", transform=axes.transAxes)
+            axes.set_xticks([])
+            axes.set_yticks([])
+            continue
+        for line in drawn:
+            curve = line.curve(metric)
+            if curve is None:
+                continue
+            label = line.label
+            if figure_kind == "ablation" and line.iterations is not None:
+                label = f"{label} [m={line.iterations}]"
+            key = label if figure_kind == "ablation" else line.label
+            color = colors.setdefault(key, palette[len(colors) % len(palette)])
+            steps, mean, std = curve
+            (handle,) = axes.plot(steps, mean, color=color, label=label,
+                                  marker="o" if len(steps) <= 12 else None, markersize=3)
+            axes.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2)
+            handles.setdefault(key, handle)
+        published = []
+        if figure_kind == "main":
+            for number, ref in enumerate(matching_references(references, env.id, metric)):
+                published.append(axes.axhline(ref["value"], color="0.35", lw=1,
+                                              ls=("--", ":", "-.")[number % 3],
+                                              label=wrap(reference_label(ref), 60)))
+        axes.set_xlabel("env steps per seed")
+        axes.set_ylabel(f"eval {METRIC_NAMES[metric]}")
+        axes.grid(alpha=0.3)
+        if figure_kind == "ablation":
+            axes.legend(fontsize="x-small")
+        elif published:
+            axes.legend(handles=published, fontsize="xx-small")
+    for index in range(len(envs), rows * columns):
+        axes_grid[index // columns][index % columns].set_visible(False)
+    if figure_kind == "main" and handles:
+        figure.legend(list(handles.values()), list(handles), loc="outside lower center",
+                      ncols=min(6, len(handles)), fontsize="small")
+    title = "training curves" if figure_kind == "main" else "ablation (CMAT)"
+    figure.suptitle(f"{plan.spec.name}: {title}, greedy evaluation, mean ± std over seeds",
+                    fontsize="small")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=90)
+
+
+def wrap(text: str, width: int) -> str:
+    words, lines, current = text.split(), [], ""
+    for word in words:
+        if current and len(current) + len(word) + 1 > width:
+            lines.append(current)
+            current = word
+        else:
+            current = f"{current} {word}".strip()
+    return "\n".join([*lines, current])

@@ -1,0 +1,96 @@
+"""An experiment's complete runs as lines (one per algorithm / variant and task), the metric of
+each task, and the published reference figures that go beside them.
+
+The metric of a task is the win rate where its environment defines one, else the episode
+return. A line's final score is each seed's last greedy evaluation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from importlib import resources
+from typing import Any
+
+import yaml
+
+from cmat.experiments.plan import Plan, Run
+from cmat.plots import Curve, eval_curve
+from cmat.rundir import RunDir
+
+METRIC_NAMES = {"win_rate": "win rate", "episode_return": "episode return"}
+
+
+@dataclass
+class Line:
+    """One algorithm / variant in one task: its complete runs pooled over seed groups."""
+
+    label: str
+    variant: str
+    algo: str
+    figures: tuple[str, ...]
+    runs: list[Run]
+    rows: list[dict[str, str]]
+
+    def curve(self, metric: str) -> Curve | None:
+        return eval_curve(self.rows, metric)
+
+    def finals(self, metric: str) -> list[float]:
+        """Each seed's last evaluation of `metric` (seeds without one are left out)."""
+        last: dict[str, tuple[int, float]] = {}
+        for row in self.rows:
+            if row["kind"] != "eval" or row.get(metric, "") == "":
+                continue
+            steps = int(row["env_steps"])
+            if row["seed"] not in last or steps >= last[row["seed"]][0]:
+                last[row["seed"]] = (steps, float(row[metric]))
+        return [value for _, value in sorted(last.values(), key=lambda item: item[0]) if
+                not math.isnan(value)]
+
+    @property
+    def iterations(self) -> int | None:
+        return self.runs[0].iterations if self.runs else None
+
+
+def collect_lines(plan: Plan) -> dict[str, list[Line]]:
+    """Per environment id, the lines of every variant and algorithm with a complete run, in
+    spec order."""
+    lines: dict[str, list[Line]] = {}
+    for env in plan.spec.envs:
+        for variant in plan.spec.variants:
+            for algo in variant.algos:
+                runs = [r for r in plan.runs if r.env is env and r.variant is variant
+                        and r.algo == algo and r.complete]
+                if not runs:
+                    continue
+                rows = [row for run in runs for row in RunDir(run.path).read_metrics()]
+                lines.setdefault(env.id, []).append(
+                    Line(variant.line_label(algo), variant.name, algo, variant.figures, runs, rows)
+                )
+    return lines
+
+
+def task_metric(lines: list[Line]) -> str:
+    for line in lines:
+        if any(r["kind"] == "eval" and r.get("win_rate", "") not in ("", "nan")
+               for r in line.rows):
+            return "win_rate"
+    return "episode_return"
+
+
+def load_references() -> list[dict[str, Any]]:
+    """The published figures of cmat/experiments/reference_results.yaml."""
+    text = resources.files("cmat.experiments").joinpath("reference_results.yaml").read_text()
+    return list(yaml.safe_load(text)["results"])
+
+
+def matching_references(
+    references: list[dict[str, Any]], env_id: str, metric: str
+) -> list[dict[str, Any]]:
+    return [r for r in references if r["env"] == env_id and r["metric"] == metric]
+
+
+def reference_label(ref: dict[str, Any]) -> str:
+    same = " (StarCraft II, not SMAX)" if ref["benchmark"] == "SMAC" else ""
+    return (f"published {ref['algorithm']} {ref['value']:.3g}{same}, {ref['source']}, "
+            f"{ref['env_steps']:.0e} steps")
