@@ -24,10 +24,10 @@ from typing import Any
 import jax
 import numpy as np
 
-from cmat.config import load_config
 from cmat.envs.host import make_host_env
 from cmat.envs.host.pool import make_pool
 from cmat.envs.protocol import EnvSpec
+from cmat.resolve import load_config
 from cmat.runners.host import HostTrainer
 
 DEFAULT_ENVS = ["mamujoco:HalfCheetah-6x1", "grf:academy_3_vs_1_with_keeper"]

@@ -30,9 +30,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from cmat.config import load_config
 from cmat.envs.host import is_host_env
 from cmat.errors import CmatError
+from cmat.resolve import load_config
 from cmat.rundir import RunDir
 
 SETTINGS = {

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import argparse
 
-from cmat.config import load_config
 from cmat.envs.suites import MATRIX_BUDGET
 from cmat.errors import CmatError
 from cmat.experiments.matrix_games import train_and_count_optimum
+from cmat.resolve import load_config
 
 METHODS: dict[str, list[str]] = {
     "cmat": ["algo=cmat"],

@@ -12,8 +12,8 @@ import argparse
 
 import numpy as np
 
-from cmat.config import load_config
 from cmat.experiments.matrix_games import train_and_count_optimum
+from cmat.resolve import load_config
 from cmat.runners.trainer import Trainer
 
 

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from cmat.config import ALGORITHMS
+from cmat.algorithms import algorithm_names
 
 PRESETS: dict[str, list[str]] = {
     "reference": [],
@@ -78,8 +78,8 @@ def breakdown(env_id: str, num_envs: int, repeats: int) -> dict[str, float]:
     """Env-only, collection, training steps/s and update FLOP/s of CMAT's default config."""
     import jax
 
-    from cmat.config import load_config
     from cmat.envs.random_policy import random_rollout
+    from cmat.resolve import load_config
     from cmat.runners import trainer as trainer_lib
 
     config = load_config(overrides=[f"env={env_id}", f"num_envs={num_envs}"])
@@ -131,7 +131,7 @@ def breakdown(env_id: str, num_envs: int, repeats: int) -> dict[str, float]:
 def measure_training(env: str, algo: str, overrides: list[str], updates: int) -> dict[str, float]:
     import jax
 
-    from cmat.config import load_config
+    from cmat.resolve import load_config
     from cmat.runners.trainer import Trainer
 
     config = load_config(
@@ -159,7 +159,7 @@ def compare_algorithms(args: argparse.Namespace) -> None:
           "each algorithm with its own defaults from cmat.config)")
     print(f"{'algo':<12} {'preset':<10} {'steps/s':>9} {'s/update':>9} {'compile s':>10} "
           f"{'peak RSS GB':>12}  overrides")
-    for algo in args.algo or ALGORITHMS:
+    for algo in args.algo or algorithm_names():
         for preset in args.preset or ["reference"]:
             overrides = [*PRESETS[preset], *args.set]
             command = [sys.executable, __file__, "--single", "--env", args.env, "--algo", algo,
@@ -182,7 +182,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--compare-algorithms", action="store_true")
     parser.add_argument("--env", default="smax:3s5z_vs_3s6z", help="env of the comparison")
-    parser.add_argument("--algo", choices=ALGORITHMS, action="append")
+    parser.add_argument("--algo", choices=algorithm_names(), action="append")
     parser.add_argument("--preset", choices=sorted(PRESETS), action="append",
                         help="comparison config (default: reference)")
     parser.add_argument("--updates", type=int, default=1, help="updates per timed chunk")

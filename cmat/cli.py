@@ -17,16 +17,10 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cmat.config import (
-    FINETUNE_MODES,
-    TrainConfig,
-    resolve_config,
-    resolve_iterations,
-    to_yaml,
-    validate,
-)
+from cmat.config import FINETUNE_MODES, TrainConfig, resolve_iterations, to_yaml, validate
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
+from cmat.resolve import resolve_config
 from cmat.rundir import RunDir
 from cmat.runners.loop import run_training
 

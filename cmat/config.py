@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
-from pathlib import Path
 from typing import Any
 
 import yaml
@@ -25,9 +24,7 @@ ITERATION_RULES = {"n": (1, 1), "n/2": (1, 2), "2n": (2, 1)}
 FINETUNE_MODES = ("consensus", "action")
 JOINT_CLIPS = ("joint", "per_agent")
 ENTROPY_REDUCTIONS = ("mean", "sum")
-JOINT_RATIO_ALGORITHMS = ("cmat", "triple_bert")
 LOGGERS = ("tensorboard", "wandb")
-ALGORITHMS = ("cmat", "mat", "pmat", "triple_bert", "happo", "mappo")
 
 @dataclass(frozen=True)
 class NetworkConfig:
@@ -204,11 +201,11 @@ class TrainConfig:
 
 
 def validate(config: TrainConfig) -> TrainConfig:
-    """Reject values the trainer cannot run with, naming the field."""
+    """Reject values the trainer cannot run with, naming the field. What depends on the
+    algorithm (its name, its fine-tuning stages, its options) is checked by
+    `cmat.algorithms.check_config`."""
     net, ppo = config.network, config.ppo
     checks = [
-        (config.algo in ALGORITHMS,
-         f"unknown algorithm {config.algo!r}; available: {', '.join(ALGORITHMS)}"),
         (config.total_steps > 0, f"steps must be > 0, got {config.total_steps}"),
         (config.seeds > 0, f"seeds must be > 0, got {config.seeds}"),
         (config.num_envs > 0, f"num_envs must be > 0, got {config.num_envs}"),
@@ -234,18 +231,12 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"(or one of {', '.join(ITERATION_RULES)}: relative to the number of agents n)"),
         (config.finetune is None or config.finetune in FINETUNE_MODES,
          f"finetune must be one of {', '.join(FINETUNE_MODES)}, got {config.finetune!r}"),
-        (config.finetune is None or config.algo == "cmat",
-         f"fine-tuning (finetune={config.finetune}) freezes CMAT's blocks and is supported "
-         f"only for algo cmat, got {config.algo!r}"),
         (net.consensus_policy in CONSENSUS_POLICIES,
          f"network.consensus_policy must be one of {CONSENSUS_POLICIES}, "
          f"got {net.consensus_policy!r}"),
         (net.consensus_codes > 0, f"network.consensus_codes must be > 0, got {net.consensus_codes}"),
         (net.latent_head_gain > 0,
          f"network.latent_head_gain must be > 0, got {net.latent_head_gain}"),
-        (net.consensus_policy == "deterministic" or config.algo == "cmat",
-         f"network.consensus_policy={net.consensus_policy} is a CMAT option; algo "
-         f"{config.algo!r} has no consensus"),
         (net.consensus_source in CONSENSUS_SOURCES,
          f"network.consensus_source must be one of {CONSENSUS_SOURCES}, "
          f"got {net.consensus_source!r}"),
@@ -259,15 +250,8 @@ def validate(config: TrainConfig) -> TrainConfig:
         (ppo.entropy_reduction in ENTROPY_REDUCTIONS,
          f"ppo.entropy_reduction must be one of {', '.join(ENTROPY_REDUCTIONS)}, "
          f"got {ppo.entropy_reduction!r}"),
-        ((ppo.joint_clip == "joint" and ppo.entropy_reduction == "mean")
-         or config.algo in JOINT_RATIO_ALGORITHMS,
-         f"ppo.joint_clip and ppo.entropy_reduction apply to the joint-ratio algorithms "
-         f"({', '.join(JOINT_RATIO_ALGORITHMS)}), not {config.algo!r}"),
         (ppo.target_kl is None or (math.isfinite(ppo.target_kl) and ppo.target_kl > 0),
          f"ppo.target_kl must be > 0 or null, got {ppo.target_kl}"),
-        (not ppo.per_agent_gae or config.algo in ("mat", "pmat"),
-         f"ppo.per_agent_gae needs per-agent values (mat, pmat); algo {config.algo!r} has a "
-         f"team value"),
     ]
     for ok, message in checks:
         if not ok:
@@ -343,83 +327,6 @@ field) -> 'default', 'suite NAME', 'algorithm NAME', 'preset NAME', 'file PATH',
 NESTED_FIELDS = ("network", "ppo")
 VERSION_HEADER = "# written by cmat "
 """The first line of a config.yaml: the version of cmat that wrote it (`written_by`)."""
-
-
-def load_config(
-    yaml_file: Path | None = None,
-    overrides: list[str] | tuple[str, ...] = (),
-    base: TrainConfig | None = None,
-) -> TrainConfig:
-    """`resolve_config` without the sources."""
-    return resolve_config(yaml_file, overrides, base)[0]
-
-
-def resolve_config(
-    yaml_file: Path | None = None,
-    overrides: list[str] | tuple[str, ...] = (),
-    base: TrainConfig | None = None,
-    base_sources: ConfigSources | None = None,
-) -> tuple[TrainConfig, ConfigSources]:
-    """A checked config and where each value came from. Layers, later ones winning: the
-    dataclass defaults (or `base`, whose values keep `base_sources`), the environment suite's
-    settings (cmat.envs.suites), the algorithm's reference defaults (its class's
-    `reference_defaults`), its preset, a YAML file, then `key=value` overrides.
-
-    Raises CmatError for an unreadable file, a malformed override, an unknown preset or field,
-    and every check of `validate`."""
-    schema = OmegaConf.structured(base if base is not None else TrainConfig)
-    layers: list[tuple[str, Any]] = []
-    try:
-        if yaml_file is not None:
-            text = Path(yaml_file).read_text()
-            loaded = yaml.safe_load(text) or {}
-            if not isinstance(loaded, dict):
-                raise CmatError(f"config file {yaml_file} must hold a mapping of keys to values")
-            layers.append((f"file {yaml_file}", OmegaConf.create(loaded)))
-        for item in overrides:
-            if "=" not in item:
-                raise CmatError(f"override {item!r} must look like key=value")
-        if overrides:
-            layers.append(("command line", OmegaConf.from_dotlist(list(overrides))))
-        merged = OmegaConf.merge(schema, *(layer for _, layer in layers))
-        if base is None:
-            layers[:0] = named_layers(merged.env, merged.algo, merged.preset)
-        config = OmegaConf.to_object(OmegaConf.merge(schema, *(layer for _, layer in layers)))
-    except FileNotFoundError:
-        raise CmatError(f"config file not found: {yaml_file}") from None
-    except yaml.YAMLError as error:
-        raise CmatError(f"config file {yaml_file} is not valid YAML: {one_line(error)}") from None
-    except OmegaConfBaseException as error:
-        raise CmatError(f"invalid config: {one_line(error)}") from None
-    assert isinstance(config, TrainConfig)
-    sources = dict.fromkeys(field_names(), "default")
-    sources.update(base_sources or {})
-    for label, layer in layers:
-        sources.update(dict.fromkeys(layer_fields(OmegaConf.to_container(layer)), label))
-    return validate(config), sources
-
-
-def named_layers(env: str, algo: str, preset: str | None) -> list[tuple[str, Any]]:
-    """The suite, algorithm and preset layers (label, values) for `env`, `algo` and `preset`.
-
-    Raises CmatError for a preset the algorithm does not declare."""
-    from cmat.envs.suites import SUITES
-
-    layers: list[tuple[str, Any]] = []
-    suite = env.partition(":")[0]
-    if suite in SUITES:
-        layers.append((f"suite {suite}", OmegaConf.create(SUITES[suite].settings)))
-    if algo in ALGORITHMS:
-        from cmat.algorithms import algorithm_presets, reference_defaults
-
-        layers.append((f"algorithm {algo}", OmegaConf.create(reference_defaults(algo))))
-        if preset is not None:
-            presets = algorithm_presets(algo)
-            if preset not in presets:
-                raise CmatError(f"unknown preset {preset!r} for {algo}; available: "
-                                f"{', '.join(presets) or 'none'}")
-            layers.append((f"preset {preset}", OmegaConf.create(presets[preset])))
-    return layers
 
 
 def field_names() -> list[str]:

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from tensorboardX import SummaryWriter
 
+from cmat.algorithms import check_config
 from cmat.config import (
     ConfigSources,
     TrainConfig,
@@ -120,7 +121,7 @@ class RunDir:
         version that wrote it."""
         text = self.config_path.read_text()
         try:
-            return from_yaml(text)
+            return check_config(from_yaml(text))
         except CmatError as error:
             from cmat.version import __version__
 

@@ -18,8 +18,9 @@ from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
 from cmat.algorithms.happo import HAPPO, compounding_factors, train_phase
 from cmat.algorithms.mappo import MAPPO
-from cmat.config import NetworkConfig, PPOConfig, load_config
+from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
+from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import Trainer
 

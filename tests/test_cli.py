@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from cmat.cli import main
-from cmat.config import load_config, validate
+from cmat.config import validate
+from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners.trainer import Trainer, TrainerState
 

@@ -13,9 +13,10 @@ import pytest
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
 from cmat.algorithms.ppo import clipped_surrogate_loss, joint_clip_range
-from cmat.config import NetworkConfig, PPOConfig, load_config
+from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
+from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import build_setup, init_state
 

@@ -20,12 +20,12 @@ import yaml
 from rliable import metrics as rliable_metrics
 
 from cmat.cli import main
-from cmat.config import load_config
 from cmat.errors import CmatError
 from cmat.experiments.lines import Line
 from cmat.experiments.runner import run_experiment
 from cmat.experiments.spec import load_spec
 from cmat.experiments.statistics import aggregate, improvement_probability, iqm
+from cmat.resolve import load_config
 from cmat.rundir import RunDir
 
 REPO = Path(__file__).resolve().parents[1]

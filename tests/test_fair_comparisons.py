@@ -29,9 +29,10 @@ from cmat.algorithms.ppo import (
     value_loss,
 )
 from cmat.cli import main
-from cmat.config import PPOConfig, load_config
+from cmat.config import PPOConfig
 from cmat.envs import make_env
 from cmat.envs.protocol import EnvSpec
+from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import (

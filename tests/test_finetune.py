@@ -16,10 +16,11 @@ import yaml
 from cmat.algorithms.cmat import CMAT
 from cmat.algorithms.cmat_blocks import CMAT_BLOCKS, FINETUNE_TRAINABLE, with_iterations
 from cmat.cli import main
-from cmat.config import NetworkConfig, load_config, resolve_iterations
+from cmat.config import NetworkConfig, resolve_iterations
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.cmat import ConsensusDecoder
 from cmat.networks.layers import Compressor
+from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners.trainer import Trainer
 

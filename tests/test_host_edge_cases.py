@@ -16,10 +16,10 @@ import pytest
 from pettingzoo import ParallelEnv
 
 from cmat.cli import main
-from cmat.config import load_config
 from cmat.envs.host import make_host_env
 from cmat.envs.host.pool import InProcessPool, WorkerPool
 from cmat.errors import CmatError
+from cmat.resolve import load_config
 from cmat.runners.host import HostTrainer
 
 HERE = __name__

@@ -24,11 +24,12 @@ import pytest
 from pettingzoo import ParallelEnv
 
 from cmat.cli import main
-from cmat.config import TrainConfig, load_config
+from cmat.config import TrainConfig
 from cmat.envs import make_env
 from cmat.envs.host import make_host_env
 from cmat.envs.host.pool import InProcessPool, WorkerPool
 from cmat.errors import CmatError
+from cmat.resolve import load_config
 from cmat.runners.host import HostTrainer
 from cmat.runners.trainer import TrainerState
 

@@ -16,9 +16,10 @@ from cmat.algorithms.base import Batch
 from cmat.algorithms.cmat import CMAT
 from cmat.algorithms.mat import MAT
 from cmat.algorithms.pmat import PMAT, order_log_prob, sample_order
-from cmat.config import NetworkConfig, PPOConfig, load_config
+from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution
+from cmat.resolve import load_config
 from cmat.runners.trainer import Trainer
 
 TINY = [

@@ -14,9 +14,10 @@ import pytest
 from cmat.algorithms.base import Batch
 from cmat.algorithms.cmat import CMAT
 from cmat.algorithms.cmat_blocks import FROZEN, TRAIN, finetune_labels
-from cmat.config import NetworkConfig, load_config
+from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
+from cmat.resolve import load_config
 
 AGENTS, ACTIONS, OBS_DIM, TEAMS = 4, 5, 6, 64
 POLICIES = ("categorical", "gaussian")

@@ -9,16 +9,9 @@ import pytest
 import yaml
 
 from cmat.cli import main
-from cmat.config import (
-    field_names,
-    from_yaml,
-    layer_fields,
-    load_config,
-    read_sources,
-    resolve_config,
-    to_yaml,
-)
+from cmat.config import field_names, from_yaml, layer_fields, read_sources, to_yaml
 from cmat.envs.suites import SUITES
+from cmat.resolve import load_config, resolve_config
 
 IDS = {
     "matrix": "matrix:penalty", "smax": "smax:2s3z", "mpe": "mpe:simple_spread",

@@ -9,9 +9,10 @@ import pytest
 
 from cmat.algorithms.base import Batch
 from cmat.algorithms.cmat import CMAT
-from cmat.config import NetworkConfig, PPOConfig, load_config
+from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
+from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import Trainer
 

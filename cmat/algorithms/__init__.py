@@ -1,36 +1,69 @@
-"""Algorithms by name: each module holds only its network and its loss (see base.Algorithm)."""
+"""The algorithm registry: the one place algorithms are listed.
+
+Each class in `ALGORITHM_CLASSES` declares what the rest of cmat needs to know about it (see
+`cmat.algorithms.base.Algorithm`): its `name`, its `reference_defaults` and `presets` (config
+layers), the fine-tuning stages it supports and its `capabilities` (which algorithm-specific
+options it accepts). Config checks that depend on the algorithm (`check_config`) read them.
+"""
 
 from __future__ import annotations
 
+import functools
 import importlib
 from typing import Any
 
 from cmat.algorithms.base import Algorithm
-from cmat.config import ALGORITHMS, NetworkConfig, PPOConfig
+from cmat.config import NetworkConfig, PPOConfig, TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 
-MODULES = {
-    "cmat": "cmat.algorithms.cmat:CMAT",
-    "mat": "cmat.algorithms.mat:MAT",
-    "pmat": "cmat.algorithms.pmat:PMAT",
-    "triple_bert": "cmat.algorithms.triple_bert:TripleBERT",
-    "happo": "cmat.algorithms.happo:HAPPO",
-    "mappo": "cmat.algorithms.mappo:MAPPO",
+ALGORITHM_CLASSES = (
+    "cmat.algorithms.cmat:CMAT",
+    "cmat.algorithms.mat:MAT",
+    "cmat.algorithms.pmat:PMAT",
+    "cmat.algorithms.triple_bert:TripleBERT",
+    "cmat.algorithms.happo:HAPPO",
+    "cmat.algorithms.mappo:MAPPO",
+)
+"""Where each algorithm's class lives, in the order `cmat train --help` lists them."""
+
+OPTION_CAPABILITIES = {
+    "network.consensus_policy": ("consensus", "deterministic"),
+    "ppo.joint_clip": ("joint_ratio", "joint"),
+    "ppo.entropy_reduction": ("joint_ratio", "mean"),
+    "ppo.per_agent_gae": ("per_agent_values", False),
 }
-"""Where each algorithm of `cmat.config.ALGORITHMS` lives (imported on first use)."""
+"""Options only some algorithms have: field -> (the capability it needs, the value every
+algorithm accepts)."""
+
+CAPABILITY_NAMES = {
+    "consensus": "a consensus",
+    "joint_ratio": "the joint ratio",
+    "per_agent_values": "per-agent values",
+}
 
 
-def algorithm_class(name: str) -> Any:
-    """The class that implements the named algorithm (its module imported on first use)."""
-    if name not in ALGORITHMS:
-        raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(ALGORITHMS)}")
-    module_name, _, class_name = MODULES[name].partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError:
-        raise CmatError(f"algorithm {name!r} is not available in this version of cmat") from None
-    return getattr(module, class_name)
+@functools.cache
+def registry() -> dict[str, type[Algorithm]]:
+    """Every algorithm's class by its declared `name` (the modules imported on first use)."""
+    classes: dict[str, type[Algorithm]] = {}
+    for location in ALGORITHM_CLASSES:
+        module_name, _, class_name = location.partition(":")
+        cls = getattr(importlib.import_module(module_name), class_name)
+        classes[cls.name] = cls
+    return classes
+
+
+def algorithm_names() -> tuple[str, ...]:
+    return tuple(registry())
+
+
+def algorithm_class(name: str) -> type[Algorithm]:
+    """The class that implements the named algorithm; CmatError for an unknown name."""
+    classes = registry()
+    if name not in classes:
+        raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(classes)}")
+    return classes[name]
 
 
 def reference_defaults(name: str) -> dict[str, Any]:
@@ -48,3 +81,27 @@ def build_algorithm(
 ) -> Algorithm:
     """The named algorithm's `build(config, spec, ppo)`."""
     return algorithm_class(name).build(config, spec, ppo or PPOConfig())
+
+
+def check_config(config: TrainConfig) -> TrainConfig:
+    """Reject a config whose algorithm is unknown, cannot fine-tune in `config.finetune`, or
+    lacks the capability one of its options needs (`OPTION_CAPABILITIES`); returns it.
+
+    Raises CmatError naming the field and the algorithms that accept it."""
+    cls = algorithm_class(config.algo)
+    if config.finetune is not None and config.finetune not in cls.finetune_stages:
+        able = [name for name, other in registry().items() if config.finetune in other.finetune_stages]
+        raise CmatError(
+            f"invalid config: fine-tuning (finetune={config.finetune}) is supported only for "
+            f"algo {', '.join(able) or 'none'}, got {config.algo!r}"
+        )
+    for field, (capability, neutral) in OPTION_CAPABILITIES.items():
+        section, _, name = field.partition(".")
+        value = getattr(getattr(config, section), name)
+        if value != neutral and capability not in cls.capabilities:
+            able = [n for n, other in registry().items() if capability in other.capabilities]
+            raise CmatError(
+                f"invalid config: {field}={value} needs {CAPABILITY_NAMES[capability]} "
+                f"({', '.join(able)}); algo {config.algo!r} has none"
+            )
+    return config

@@ -72,9 +72,19 @@ class Algorithm(Protocol):
     empty where it has none); only centralised critics read it.
     """
 
+    name: ClassVar[str]
+    """The algorithm's name in configs and on the command line (`--algo`)."""
+
+    finetune_stages: ClassVar[tuple[str, ...]]
+    """The fine-tuning stages (`TrainConfig.finetune`) `finetune_labels` knows."""
+
+    capabilities: ClassVar[frozenset[str]]
+    """What the algorithm has of `cmat.algorithms.OPTION_CAPABILITIES`: 'consensus',
+    'joint_ratio', 'per_agent_values'; the options that need one are rejected without it."""
+
     reference_defaults: ClassVar[dict[str, Any]]
     """Config values of the algorithm's reference implementation where they differ from the
-    dataclass defaults (the reference MAT's SMAC settings); `cmat.config.load_config` puts them
+    dataclass defaults (the reference MAT's SMAC settings); `cmat.resolve.resolve_config` puts them
     between those defaults and a YAML file."""
 
     presets: ClassVar[dict[str, dict[str, Any]]]
@@ -105,7 +115,7 @@ class Algorithm(Protocol):
         batch: Batch, rng: jax.Array, ppo: PPOConfig,
     ) -> tuple[Params, Any, dict[str, jax.Array]]:
         """One update's optimisation on a rollout's `batch`: new params, optimiser state and
-        metrics. `cmat.algorithms.sgd.SharedUpdate` gives PPO's epochs × minibatches on `loss`;
+        metrics. `cmat.algorithms.sgd.PPOAlgorithm` gives PPO's epochs × minibatches on `loss`;
         an algorithm with its own scheme (HAPPO's agent-by-agent phases) overrides it."""
         ...
 

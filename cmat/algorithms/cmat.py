@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
-from cmat.algorithms.cmat_blocks import finetune_labels
+from cmat.algorithms.cmat_blocks import FINETUNE_TRAINABLE, finetune_labels
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     joint_clip_range,
@@ -31,7 +31,7 @@ from cmat.algorithms.ppo import (
     total_loss,
     value_loss,
 )
-from cmat.algorithms.sgd import SharedUpdate
+from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.cmat import CMATNetwork, PolicyOutput
@@ -79,8 +79,12 @@ independence are unchanged."""
 
 
 @dataclass(frozen=True)
-class CMAT(SharedUpdate):
+class CMAT(PPOAlgorithm):
     network: CMATNetwork
+
+    name: ClassVar[str] = "cmat"
+    finetune_stages: ClassVar[tuple[str, ...]] = tuple(FINETUNE_TRAINABLE)
+    capabilities: ClassVar[frozenset[str]] = frozenset({"consensus", "joint_ratio"})
 
     reference_defaults: ClassVar[dict[str, Any]] = {}
     """The paper trains CMAT with the reference MAT's settings (the dataclass defaults) and its

@@ -85,6 +85,8 @@ class HAPPO(MAPPO):
     `loss` (MAPPO's) is the simultaneous objective, every M = 1; `update` is the sequential one.
     """
 
+    name: ClassVar[str] = "happo"
+
     reference_defaults: ClassVar[dict[str, Any]] = {
         "ppo": {"clip_eps": 0.2, "epochs": 5, "target_tau": 1.0, "active_masks": True},
         "network": {"n_embd": 128},

@@ -27,7 +27,7 @@ from cmat.algorithms.ppo import (
     total_loss,
     value_loss,
 )
-from cmat.algorithms.sgd import SharedUpdate
+from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution, greedy_action
@@ -35,13 +35,15 @@ from cmat.networks.mlp import MLPActor, MLPCritic
 
 
 @dataclass(frozen=True)
-class MAPPO(SharedUpdate):
+class MAPPO(PPOAlgorithm):
     actor: MLPActor
     critic: MLPCritic
     num_agents: int
     discrete: bool
     state_dim: int = 0
     """The environment's global state size; 0: the critic reads the concatenated observations."""
+
+    name: ClassVar[str] = "mappo"
 
     presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
     """'paper': the paper's comparison setting, the reference settings with 8 rollout

@@ -29,7 +29,7 @@ from cmat.algorithms.ppo import (
     total_loss,
     value_loss,
 )
-from cmat.algorithms.sgd import SharedUpdate
+from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution
@@ -37,10 +37,13 @@ from cmat.networks.mat import MATNetwork, MATOutput
 
 
 @dataclass(frozen=True)
-class MAT(SharedUpdate):
+class MAT(PPOAlgorithm):
     network: MATNetwork
     per_agent_gae: bool = False
     """Values are per agent ([n], `ppo.per_agent_gae`), else their team mean ([])."""
+
+    name: ClassVar[str] = "mat"
+    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
 
     presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
     """'paper': the paper's comparison setting, the reference settings with 8 rollout

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.mat import MAT
 from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean
-from cmat.algorithms.sgd import SharedUpdate
+from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.mat import OrderScorer
@@ -50,9 +50,12 @@ def sample_order(scores: jax.Array, key: jax.Array) -> jax.Array:
 
 
 @dataclass(frozen=True)
-class PMAT(SharedUpdate):
+class PMAT(PPOAlgorithm):
     mat: MAT
     scorer: OrderScorer
+
+    name: ClassVar[str] = "pmat"
+    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
 
     reference_defaults: ClassVar[dict[str, Any]] = MAT.reference_defaults
     """PMAT is built on the reference MAT code and trains as it does."""

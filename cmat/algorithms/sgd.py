@@ -3,13 +3,12 @@
 The loss is a value, as in Brax's `training/gradients.py`: the shared update passes an
 algorithm's `loss`, HAPPO one loss per agent phase. The optimiser is passed too, so a caller can
 restrict it (fine-tuning masks, HAPPO's per-agent phases) without this module knowing why.
-`SharedUpdate` is the `Algorithm.update` and `Algorithm.finetune_labels` of every algorithm
-that does not define its own.
+`PPOAlgorithm` holds what every algorithm inherits unless it declares otherwise.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -106,9 +105,16 @@ def finetune_optimizer(
     return optax.multi_transform({TRAIN: optimizer, FROZEN: optax.set_to_zero()}, labels)
 
 
-class SharedUpdate:
-    """`Algorithm.update` as PPO: `minibatch_sgd` on the algorithm's own `loss`; and no
-    fine-tuning stages. Algorithms inherit it and override what they do differently."""
+class PPOAlgorithm:
+    """The defaults of `cmat.algorithms.base.Algorithm`: `update` is `minibatch_sgd` on the
+    algorithm's own `loss`; no fine-tuning stages, no capabilities, no presets, the dataclass
+    defaults as reference settings. Algorithms inherit it and declare what differs."""
+
+    name: ClassVar[str]
+    finetune_stages: ClassVar[tuple[str, ...]] = ()
+    capabilities: ClassVar[frozenset[str]] = frozenset()
+    reference_defaults: ClassVar[dict[str, Any]] = {}
+    presets: ClassVar[dict[str, dict[str, Any]]] = {}
 
     def loss(self, params: Params, batch: Batch, ppo: PPOConfig) -> tuple[jax.Array, Metrics]:
         raise NotImplementedError

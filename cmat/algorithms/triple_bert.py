@@ -9,8 +9,10 @@ only the network differs (cmat.networks.triple_bert).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from cmat.algorithms.cmat import CMAT
+from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.triple_bert import TripleBERTNetwork
@@ -19,6 +21,11 @@ from cmat.networks.triple_bert import TripleBERTNetwork
 @dataclass(frozen=True)
 class TripleBERT(CMAT):
     network: TripleBERTNetwork  # type: ignore[assignment]
+
+    name: ClassVar[str] = "triple_bert"
+    finetune_stages: ClassVar[tuple[str, ...]] = ()
+    capabilities: ClassVar[frozenset[str]] = frozenset({"joint_ratio"})
+    finetune_labels = PPOAlgorithm.finetune_labels
 
     @classmethod
     def build(

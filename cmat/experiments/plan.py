@@ -23,9 +23,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cmat.config import TrainConfig, load_config, resolve_iterations
+from cmat.config import TrainConfig, resolve_iterations
 from cmat.errors import CmatError
 from cmat.experiments.spec import EnvEntry, ExperimentSpec, Variant
+from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners.finetune import finetune_config
 

@@ -40,7 +40,8 @@ from typing import Any
 
 import yaml
 
-from cmat.config import ALGORITHMS, FINETUNE_MODES
+from cmat.algorithms import algorithm_class, algorithm_names
+from cmat.config import FINETUNE_MODES
 from cmat.errors import CmatError
 
 FIGURES = ("main", "ablation", "none")
@@ -202,7 +203,9 @@ def variant(
         raise CmatError(f"{where}: finetune must be one of {', '.join(FINETUNE_MODES)}, "
                         f"got {finetune!r}")
     variant_algos = algo_list(settings["algos"], f"{where}: algos") if "algos" in settings else algos
-    if finetune is not None and variant_algos != ("cmat",):
+    if finetune is not None and any(
+        finetune not in algorithm_class(algo).finetune_stages for algo in variant_algos
+    ):
         raise CmatError(f"{where}: fine-tuning freezes CMAT's blocks; give it algos: [cmat]")
     figure = settings.get("figure", "main")
     figures = tuple(figure) if isinstance(figure, list) else (figure,)
@@ -296,9 +299,9 @@ def listed(value: Any, where: str) -> list:
 def algo_list(value: Any, where: str) -> tuple[str, ...]:
     names = listed(value, where)
     for name in names:
-        if name not in ALGORITHMS:
+        if name not in algorithm_names():
             raise CmatError(f"{where}: unknown algorithm {name!r}; available: "
-                            f"{', '.join(ALGORITHMS)}")
+                            f"{', '.join(algorithm_names())}")
     if len(set(names)) != len(names):
         raise CmatError(f"{where} lists an algorithm twice")
     return tuple(names)

@@ -17,8 +17,10 @@ from typing import TYPE_CHECKING
 
 import jax
 
-from cmat.config import ConfigSources, TrainConfig, resolve_config, validate
+from cmat.algorithms import algorithm_class, check_config
+from cmat.config import ConfigSources, TrainConfig, validate
 from cmat.errors import CmatError
+from cmat.resolve import resolve_config
 
 if TYPE_CHECKING:
     from cmat.runners.trainer import Trainer, TrainerState
@@ -38,9 +40,10 @@ def finetune_config(
     """The source run's config with the fine-tuning stage, its budget and `key=value` overrides
     (e.g. a lower ppo.lr) applied, and each value's source (`source_sources`, the source run's,
     for what it keeps)."""
-    if source.algo != "cmat":
+    if mode not in algorithm_class(source.algo).finetune_stages:
         raise CmatError(
-            f"fine-tuning freezes CMAT's blocks; {source_dir} is a {source.algo!r} run"
+            f"fine-tuning freezes CMAT's blocks; {source_dir} is a {source.algo!r} run, which "
+            f"has no fine-tuning stage {mode!r}"
         )
     config, sources = resolve_config(None, overrides, base=source, base_sources=source_sources)
     changed = [name for name in FIXED_FIELDS if getattr(config, name) != getattr(source, name)]
@@ -59,7 +62,7 @@ def finetune_config(
     sources.update(finetune=stage, finetune_from=stage)
     if steps is not None:
         sources["total_steps"] = stage
-    return validate(config), sources
+    return check_config(validate(config)), sources
 
 
 def finetune_start(trainer: Trainer, source_trainer: Trainer, data: bytes) -> TrainerState:

@@ -1,0 +1,101 @@
+"""The run config a user gets: the layers of `cmat.config` resolved, with each value's source.
+
+Layers, later ones winning: the dataclass defaults, the environment suite's settings
+(`cmat.envs.suites`), the algorithm's reference defaults, its preset, a YAML file, then
+`key=value` overrides from the command line. This module sits above the algorithms because two
+of the layers (and the checks that depend on the algorithm) come from the algorithm registry.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from cmat.algorithms import algorithm_names, algorithm_presets, check_config, reference_defaults
+from cmat.config import (
+    ConfigSources,
+    TrainConfig,
+    field_names,
+    layer_fields,
+    one_line,
+    validate,
+)
+from cmat.envs.suites import SUITES
+from cmat.errors import CmatError
+
+
+def load_config(
+    yaml_file: Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    base: TrainConfig | None = None,
+) -> TrainConfig:
+    """`resolve_config` without the sources."""
+    return resolve_config(yaml_file, overrides, base)[0]
+
+
+def resolve_config(
+    yaml_file: Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    base: TrainConfig | None = None,
+    base_sources: ConfigSources | None = None,
+) -> tuple[TrainConfig, ConfigSources]:
+    """A checked config and where each value came from. Layers, later ones winning: the
+    dataclass defaults (or `base`, whose values keep `base_sources`), the environment suite's
+    settings (cmat.envs.suites), the algorithm's reference defaults (its class's
+    `reference_defaults`), its preset, a YAML file, then `key=value` overrides.
+
+    Raises CmatError for an unreadable file, a malformed override, an unknown preset or field,
+    and every check of `validate` and `check_config`."""
+    schema = OmegaConf.structured(base if base is not None else TrainConfig)
+    layers: list[tuple[str, Any]] = []
+    try:
+        if yaml_file is not None:
+            text = Path(yaml_file).read_text()
+            loaded = yaml.safe_load(text) or {}
+            if not isinstance(loaded, dict):
+                raise CmatError(f"config file {yaml_file} must hold a mapping of keys to values")
+            layers.append((f"file {yaml_file}", OmegaConf.create(loaded)))
+        for item in overrides:
+            if "=" not in item:
+                raise CmatError(f"override {item!r} must look like key=value")
+        if overrides:
+            layers.append(("command line", OmegaConf.from_dotlist(list(overrides))))
+        merged = OmegaConf.merge(schema, *(layer for _, layer in layers))
+        if base is None:
+            layers[:0] = named_layers(merged.env, merged.algo, merged.preset)
+        config = OmegaConf.to_object(OmegaConf.merge(schema, *(layer for _, layer in layers)))
+    except FileNotFoundError:
+        raise CmatError(f"config file not found: {yaml_file}") from None
+    except yaml.YAMLError as error:
+        raise CmatError(f"config file {yaml_file} is not valid YAML: {one_line(error)}") from None
+    except OmegaConfBaseException as error:
+        raise CmatError(f"invalid config: {one_line(error)}") from None
+    assert isinstance(config, TrainConfig)
+    sources = dict.fromkeys(field_names(), "default")
+    sources.update(base_sources or {})
+    for label, layer in layers:
+        sources.update(dict.fromkeys(layer_fields(OmegaConf.to_container(layer)), label))
+    return check_config(validate(config)), sources
+
+
+def named_layers(env: str, algo: str, preset: str | None) -> list[tuple[str, Any]]:
+    """The suite, algorithm and preset layers (label, values) for `env`, `algo` and `preset`.
+
+    Raises CmatError for a preset the algorithm does not declare."""
+    layers: list[tuple[str, Any]] = []
+    suite = env.partition(":")[0]
+    if suite in SUITES:
+        layers.append((f"suite {suite}", OmegaConf.create(SUITES[suite].settings)))
+    if algo in algorithm_names():
+        layers.append((f"algorithm {algo}", OmegaConf.create(reference_defaults(algo))))
+        if preset is not None:
+            presets = algorithm_presets(algo)
+            if preset not in presets:
+                raise CmatError(f"unknown preset {preset!r} for {algo}; available: "
+                                f"{', '.join(presets) or 'none'}")
+            layers.append((f"preset {preset}", OmegaConf.create(presets[preset])))
+    return layers

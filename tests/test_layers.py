@@ -1,0 +1,35 @@
+"""The package imports only downwards and has no import cycle (scripts/import_graph.py)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "import_graph.py"
+
+
+def test_no_upward_import_and_no_cycle() -> None:
+    result = subprocess.run(
+        [sys.executable, str(SCRIPT), "--check"], capture_output=True, text=True, check=False
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_the_check_finds_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
+    package = tmp_path / "cmat"
+    (package / "networks").mkdir(parents=True)
+    (package / "algorithms").mkdir()
+    for init in (package, package / "networks", package / "algorithms"):
+        (init / "__init__.py").write_text("")
+    (package / "networks" / "net.py").write_text("from cmat.algorithms.algo import X\n")
+    (package / "algorithms" / "algo.py").write_text("def f():\n    import cmat.networks.net\n")
+    copy = tmp_path / "scripts" / "import_graph.py"
+    copy.parent.mkdir()
+    copy.write_text(SCRIPT.read_text())
+    result = subprocess.run(
+        [sys.executable, str(copy), "--check"], capture_output=True, text=True, check=False
+    )
+    assert result.returncode == 1
+    assert "upward import: cmat.networks.net -> cmat.algorithms.algo" in result.stdout
+    assert "import cycle: cmat.algorithms.algo <-> cmat.networks.net" in result.stdout
