@@ -1,5 +1,5 @@
 """Command line: `cmat train`, `cmat finetune`, `cmat eval`, `cmat render`, `cmat plot`,
-`cmat experiment`.
+`cmat config`, `cmat experiment`.
 
 Every user error (CmatError, an unreadable file) is one line `cmat: error: ...` on stderr and
 exit code 2, as argparse does for usage errors.
@@ -13,11 +13,15 @@ import json
 import math
 import os
 import sys
+import textwrap
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cmat.config import FINETUNE_MODES, TrainConfig, resolve_iterations, to_yaml, validate
+from cmat.config import (
+    FINETUNE_MODES, NESTED_FIELDS, TrainConfig, field_docs, resolve_iterations, to_yaml, validate,
+)
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import resolve_config
@@ -119,6 +123,17 @@ def build_parser() -> argparse.ArgumentParser:
                           help="new run directory (default runs/<env>-finetune-<mode>-<timestamp>)")
     finetune.set_defaults(handler=finetune_command)
 
+    show = commands.add_parser(
+        "config", help="every config field: its value for an algorithm and env, where that "
+                       "value comes from, and what the field means",
+    )
+    show.add_argument("--algo", help="algorithm (default cmat)")
+    show.add_argument("--env", help="environment id (its suite's settings apply)")
+    show.add_argument("--preset", metavar="NAME", help="a named setting of the algorithm")
+    show.add_argument("--set", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
+                      help="config overrides, as for train")
+    show.set_defaults(handler=config_command)
+
     experiment = commands.add_parser(
         "experiment", help="run a grid of algorithms x environments x seeds x variants"
     )
@@ -163,6 +178,23 @@ def main(argv: list[str] | None = None) -> int:
 def fail(message: str) -> int:
     print(f"cmat: error: {' '.join(message.split())}", file=sys.stderr)
     return 2
+
+
+def config_command(args: argparse.Namespace) -> None:
+    """Print each field as `name = value  [source]` with its docstring indented below."""
+    explicit = [f"{key}={value}" for key, value in
+                (("algo", args.algo), ("env", args.env), ("preset", args.preset))
+                if value is not None]
+    config, sources = resolve_config(None, [*args.set, *explicit])
+    docs = field_docs()
+    flat = {**{k: v for k, v in asdict(config).items() if k not in NESTED_FIELDS},
+            **{f"{section}.{k}": v for section in NESTED_FIELDS
+               for k, v in asdict(config)[section].items()}}
+    for name, value in flat.items():
+        print(f"{name} = {value!r}  [{sources.get(name, 'default')}]")
+        if docs.get(name):
+            print(textwrap.fill(docs[name], width=96, initial_indent="    ",
+                                subsequent_indent="    "))
 
 
 def train_command(args: argparse.Namespace) -> None:

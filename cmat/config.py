@@ -7,8 +7,11 @@ is converted back to these frozen dataclasses, so a typo or a wrong type fails b
 
 from __future__ import annotations
 
+import ast
+import functools
 import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from pathlib import Path
 from typing import Any
 
 import yaml
@@ -74,16 +77,26 @@ class PPOConfig:
     """Single-agent PPO over the joint action (paper eq. cmat, eq. ratio)."""
 
     lr: float = 5e-4
+    """Adam learning rate (the reference MAT's `lr`)."""
     adam_eps: float = 1e-5
+    """Adam's epsilon (the reference MAT's `opti_eps`)."""
     epochs: int = 15
+    """Passes over each update's batch (`ppo_epoch`)."""
     num_minibatches: int = 1
+    """Minibatches each pass is split into (`num_mini_batch`); must divide
+    num_envs × rollout_length."""
     clip_eps: float = 0.05
     """Clip range of the joint ratio and of the clipped value loss."""
     ent_coef: float = 0.01
+    """Weight c_ent of the entropy bonus in the total loss (`entropy_coef`)."""
     value_coef: float = 1.0
+    """Weight c_v of the value loss in the total loss (`value_loss_coef`)."""
     max_grad_norm: float = 10.0
+    """Global gradient norm the gradients are clipped to before Adam (`max_grad_norm`)."""
     gamma: float = 0.99
+    """Discount factor."""
     gae_lambda: float = 0.95
+    """λ of generalised advantage estimation (GAE)."""
     target_tau: float = 0.1
     """Soft-update rate of the target critic phi- <- tau*phi + (1-tau)*phi- after each update
     (Algorithm 1). The paper gives no value; tau=1 is standard PPO (GAE and value targets from
@@ -103,9 +116,14 @@ class PPOConfig:
     value_norm: bool = True
     """Running mean/std normalisation of value targets (MAT's ValueNorm)."""
     huber_loss: bool = True
+    """Huber value loss instead of the squared error (`use_huber_loss`)."""
     huber_delta: float = 10.0
+    """δ of the Huber value loss (`huber_delta`)."""
     clipped_value_loss: bool = True
+    """PPO's clipped value loss: the worse of the new value's error and that of the old value
+    moved at most clip_eps (`use_clipped_value_loss`)."""
     normalize_advantages: bool = True
+    """Normalise each update's advantages to zero mean and unit std."""
     joint_clip: str = "joint"
     """CMAT and Triple-BERT: 'joint' clips the joint ratio R = Π_i r_i to [1−ε, 1+ε] (paper
     eq. cmat); 'per_agent' clips it to [(1−ε)^k, (1+ε)^k] for the k active agents of the
@@ -135,7 +153,8 @@ class TrainConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
     algo: str = "cmat"
-    """One of cmat, mat, pmat, triple_bert, happo, mappo."""
+    """One of the registry's algorithms (`cmat.algorithms.ALGORITHM_CLASSES`): cmat, mat,
+    pmat, triple_bert, happo, mappo."""
     total_steps: int = 200_000
     """Environment steps per seed (one step = one joint action in one environment)."""
     num_envs: int = 32
@@ -369,6 +388,25 @@ def to_yaml(config: TrainConfig, sources: ConfigSources | None = None) -> str:
         else:
             lines.append(source_line(key, value, sources.get(key)))
     return "\n".join(lines) + "\n"
+
+
+@functools.cache
+def field_docs() -> dict[str, str]:
+    """Every config field's docstring (the string literal after it in this module's
+    dataclasses) by dotted name, `ppo.lr` for the nested ones; what `cmat config` prints."""
+    sections = {"NetworkConfig": "network.", "PPOConfig": "ppo.", "TrainConfig": ""}
+    docs: dict[str, str] = {}
+    for node in ast.parse(Path(__file__).read_text()).body:
+        if not isinstance(node, ast.ClassDef) or node.name not in sections:
+            continue
+        for field_node, after in zip(node.body, node.body[1:]):
+            if (isinstance(field_node, ast.AnnAssign) and isinstance(field_node.target, ast.Name)
+                    and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
+                    and isinstance(after.value.value, str)):
+                docs[sections[node.name] + field_node.target.id] = " ".join(
+                    after.value.value.split()
+                )
+    return docs
 
 
 def source_line(key: str, value: Any, source: str | None) -> str:
