@@ -35,16 +35,19 @@ def algorithm_class(name: str) -> Any:
 
 def reference_defaults(name: str) -> dict[str, Any]:
     """The named algorithm's reference settings (its class's `reference_defaults`)."""
-    return algorithm_class(name).reference_defaults
+    defaults: dict[str, Any] = algorithm_class(name).reference_defaults
+    return defaults
 
 
 def algorithm_presets(name: str) -> dict[str, dict[str, Any]]:
     """The named algorithm's presets (its class's `presets`: name -> config values)."""
-    return algorithm_class(name).presets
+    presets: dict[str, dict[str, Any]] = algorithm_class(name).presets
+    return presets
 
 
 def build_algorithm(
     name: str, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
 ) -> Algorithm:
     """The named algorithm's `build(config, spec, ppo)`."""
-    return algorithm_class(name).build(config, spec, ppo or PPOConfig())
+    algorithm: Algorithm = algorithm_class(name).build(config, spec, ppo or PPOConfig())
+    return algorithm
