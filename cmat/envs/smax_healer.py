@@ -76,7 +76,7 @@ import dataclasses
 import inspect
 from collections.abc import Callable
 from functools import partial
-from typing import Any
+from typing import Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -110,7 +110,7 @@ MARINE, MARAUDER, MEDIVAC = 0, 1, 6
 STOP = 4
 """SMAX's stop action (0-3 move north, east, south, west; actions from 5 name targets)."""
 
-_MEDIVAC_STATS = {
+_MEDIVAC_STATS: dict[str, Any] = {
     "unit_type_names": "medivac",
     "unit_type_shorthands": "V",
     "unit_type_velocities": 3.5,
@@ -293,7 +293,7 @@ class HealerSMAX(SMAX):
         energy = jnp.clip(
             energy - amount / HP_PER_ENERGY + regen, 0.0, self.unit_type_max_energy[types]
         )
-        return state.replace(unit_health=health, unit_energy=energy)
+        return dataclasses.replace(state, unit_health=health, unit_energy=energy)
 
     def _update_dead_agents(self, state: State) -> State:
         """SMAX's deaths; a team with no unit left that can attack is out of the battle."""
@@ -303,14 +303,15 @@ class HealerSMAX(SMAX):
         team_fights = jnp.where(
             is_ally, fighting[: self.num_allies].any(), fighting[self.num_allies :].any()
         )
-        return state.replace(unit_alive=state.unit_alive & team_fights)
+        return dataclasses.replace(state, unit_alive=state.unit_alive & team_fights)
 
     def _push_units_away(self, state: State, firmness: float = 1.0) -> State:
         """SMAX's collisions between ground units; flying units collide with nothing (SMAX
         pushes only living units, so the pass counts them as dead)."""
         alive, flying = state.unit_alive, self.unit_type_flying[state.unit_types]
-        state = super()._push_units_away(state.replace(unit_alive=alive & ~flying), firmness)
-        return state.replace(unit_alive=alive)
+        pushed = dataclasses.replace(state, unit_alive=alive & ~flying)
+        state = super()._push_units_away(pushed, firmness)
+        return dataclasses.replace(state, unit_alive=alive)
 
     @partial(jax.jit, static_argnums=(0,))
     def compute_reward(
@@ -444,7 +445,7 @@ class HeuristicEnemyHealerSMAX(HeuristicEnemySMAX):
     @property
     def world(self) -> HealerSMAX:
         """The two-team SMAX world the enemy heuristic plays in."""
-        return self._env
+        return cast(HealerSMAX, self._env)  # set in __init__; the base class declares SMAX
 
     def get_enemy_actions(
         self, key: jax.Array, policy_state: HeuristicPolicyState, enemy_obs: jax.Array
@@ -523,7 +524,9 @@ def first_episode_wins(
     over-represented as they are in win rates counted over a fixed number of steps.
     """
 
-    def one_step(carry: tuple[Any, TimeStep, jax.Array, jax.Array], key: jax.Array) -> tuple:
+    Carry = tuple[Any, TimeStep, jax.Array, jax.Array]
+
+    def one_step(carry: Carry, key: jax.Array) -> tuple[Carry, None]:
         state, timestep, finished, won = carry
         action_key, step_key = jax.random.split(key)
         actions = policy(action_key, state, timestep)
