@@ -371,9 +371,9 @@ def healer_heuristic_policy(
     The returned `policy(key, policy_state, obs, slot)` needs the unit's `slot`: its own
     position in its team's target-slot order (ally i: i; the enemy of global index i:
     `num_agents - 1 - i`), which the observation does not reveal. A healer heals the most
-    injured teammate in range, else moves towards the most injured teammate it sees, else towards the teammates it sees, else
-    (alone) as the heuristic moves. Other units play JaxMARL's heuristic, blind to flying units
-    they cannot shoot.
+    injured teammate in range, else moves towards the most injured teammate it sees, else
+    towards the teammates it sees, else (alone) as the heuristic moves. Other units play
+    JaxMARL's heuristic, blind to flying units they cannot shoot.
     """
     fighter = create_heuristic_policy(world, team, shoot=shoot, attack_mode=attack_mode)
     mover = create_heuristic_policy(world, team, shoot=False)
