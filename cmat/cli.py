@@ -274,7 +274,9 @@ def with_eval_iterations(
         )
     network = dataclasses.replace(config.network, consensus_iterations=iterations)
     eval_trainer = build_trainer(dataclasses.replace(config, network=network))
-    return eval_trainer, state.replace(params=with_iterations(state.params, iterations))
+    return eval_trainer, dataclasses.replace(
+        state, params=with_iterations(state.params, iterations)
+    )
 
 
 def finetune_command(args: argparse.Namespace) -> None:
@@ -324,7 +326,8 @@ def build_trainer(config: TrainConfig) -> Trainer:
     interface); JAX is imported here, after the log level is set."""
     from cmat.runners.host import build_trainer as build
 
-    return build(config)
+    trainer: Trainer = build(config)
+    return trainer
 
 
 def default_out(config: TrainConfig) -> Path:
