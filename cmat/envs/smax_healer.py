@@ -318,15 +318,16 @@ class HealerSMAX(SMAX):
         self, state: State, health_before: jax.Array, health_after: jax.Array
     ) -> dict[str, jax.Array]:
         """SMAX's reward counting each unit's net health loss only (healing pays nothing)."""
-        return super().compute_reward(
+        rewards: dict[str, jax.Array] = super().compute_reward(
             state, health_before, jnp.minimum(health_after, health_before)
         )
+        return rewards
 
     # Observations: a Medivac's weapon cooldown slot shows its energy.
 
     @partial(jax.jit, static_argnums=(0,))
     def _observe_features(self, state: State, i: jax.Array, j_idx: jax.Array) -> jax.Array:
-        features = super()._observe_features(state, i, j_idx)
+        features: jax.Array = super()._observe_features(state, i, j_idx)
         slot = self.unit_features.index("weapon_cooldown")
         energy, has_energy = self._energy_fraction(state)
         return features.at[slot].set(
@@ -335,7 +336,7 @@ class HealerSMAX(SMAX):
 
     @partial(jax.jit, static_argnums=(0,))
     def _get_own_features(self, state: State, i: jax.Array) -> jax.Array:
-        features = super()._get_own_features(state, i)
+        features: jax.Array = super()._get_own_features(state, i)
         slot = self.own_features.index("weapon_cooldown")
         energy, has_energy = self._energy_fraction(state)
         shown = has_energy[i] & state.unit_alive[i]
