@@ -206,12 +206,14 @@ def main() -> int:
         workdir.mkdir(parents=True, exist_ok=True)
         for env in args.envs:
             try:
-                results.append(soak(env, args.kills, args.seeds, args.steps or STEPS.get(env, 20_000),
+                steps = args.steps or STEPS.get(env, 20_000)
+                results.append(soak(env, args.kills, args.seeds, steps,
                                     SETTINGS.get(env, []), rng, workdir, args.timeout))
             except CmatError as error:
                 print(f"{env}: {error}", file=sys.stderr)
                 return 1
-    print("\nenv                        kills  resumes  rows  final/budget     same as uninterrupted  s")
+    print("\nenv                        kills  resumes  rows  final/budget     "
+          "same as uninterrupted  s")
     failed = False
     for r in results:
         print(f"{r['env']:<26} {r['kills']:>5}  {r['resumes']:>7}  {r['rows']:>4}  "

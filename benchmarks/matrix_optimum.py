@@ -52,8 +52,8 @@ def main() -> None:
         except CmatError as error:
             print(f"{method:<17} unavailable: {error}")
             continue
-        print(f"{method:<17} {count:>7}/{args.seeds}  {' '.join(''.join(map(str, a)) for a in joint)}",
-              flush=True)
+        actions = " ".join("".join(map(str, a)) for a in joint)
+        print(f"{method:<17} {count:>7}/{args.seeds}  {actions}", flush=True)
 
 
 if __name__ == "__main__":

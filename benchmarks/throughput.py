@@ -1,8 +1,8 @@
 """Where CMAT's training time goes, and training steps/s of every algorithm.
 
-    python benchmarks/throughput.py                         # CMAT breakdown, SMAX 3m and 3s5z_vs_3s6z
+    python benchmarks/throughput.py                       # CMAT breakdown, SMAX 3m and 3s5z_vs_3s6z
     python benchmarks/throughput.py --envs 128 --scenarios smax:3m
-    python benchmarks/throughput.py --compare-algorithms    # every algorithm on 3s5z_vs_3s6z
+    python benchmarks/throughput.py --compare-algorithms  # every algorithm on 3s5z_vs_3s6z
     python benchmarks/throughput.py --compare-algorithms --algo cmat --algo mat --preset mava
 
 Breakdown (one process, default config but `--envs` environments): env-only steps/s (random

@@ -20,7 +20,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cmat.config import (
-    FINETUNE_MODES, NESTED_FIELDS, TrainConfig, field_docs, resolve_iterations, to_yaml, validate,
+    FINETUNE_MODES,
+    NESTED_FIELDS,
+    TrainConfig,
+    field_docs,
+    resolve_iterations,
+    to_yaml,
+    validate,
 )
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
@@ -300,7 +306,9 @@ def with_eval_iterations(
         )
     network = dataclasses.replace(config.network, consensus_iterations=iterations)
     eval_trainer = build_trainer(dataclasses.replace(config, network=network))
-    return eval_trainer, state.replace(params=with_iterations(state.params, iterations))
+    return eval_trainer, dataclasses.replace(
+        state, params=with_iterations(state.params, iterations)
+    )
 
 
 def finetune_command(args: argparse.Namespace) -> None:
@@ -350,7 +358,8 @@ def build_trainer(config: TrainConfig) -> Trainer:
     interface); JAX is imported here, after the log level is set."""
     from cmat.runners.host import build_trainer as build
 
-    return build(config)
+    trainer: Trainer = build(config)
+    return trainer
 
 
 def default_out(config: TrainConfig) -> Path:

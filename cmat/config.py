@@ -253,7 +253,8 @@ def validate(config: TrainConfig) -> TrainConfig:
         (net.consensus_policy in CONSENSUS_POLICIES,
          f"network.consensus_policy must be one of {CONSENSUS_POLICIES}, "
          f"got {net.consensus_policy!r}"),
-        (net.consensus_codes > 0, f"network.consensus_codes must be > 0, got {net.consensus_codes}"),
+        (net.consensus_codes > 0,
+         f"network.consensus_codes must be > 0, got {net.consensus_codes}"),
         (net.latent_head_gain > 0,
          f"network.latent_head_gain must be > 0, got {net.latent_head_gain}"),
         (net.consensus_source in CONSENSUS_SOURCES,
@@ -373,7 +374,8 @@ def to_yaml(config: TrainConfig, sources: ConfigSources | None = None) -> str:
 
     header = f"{VERSION_HEADER}{__version__}\n"
     if sources is None:
-        return header + yaml.safe_dump(asdict(config), sort_keys=False)
+        dumped: str = yaml.safe_dump(asdict(config), sort_keys=False)
+        return header + dumped
     lines = [
         header.rstrip("\n"),
         "# Resolved run config. Each value's comment says where it came from: default (the",

@@ -106,7 +106,7 @@ def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
                   if (c.startswith(w) if w.endswith("_") else c == w)] for _, rows in runs]
         names = list(dict.fromkeys(column for columns in found for column in columns))
         styled = len(names) <= len(LINE_STYLES)
-        for (label, rows), columns, colour in zip(runs, found, colours):
+        for (_label, rows), columns, colour in zip(runs, found, colours):
             for column in columns:
                 curve = eval_curve(rows, column, kind="train")
                 if curve is None:

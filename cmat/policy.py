@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +24,9 @@ from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 from cmat.rundir import RunDir
+
+if TYPE_CHECKING:
+    from cmat.algorithms.base import Algorithm
 
 
 @dataclass(frozen=True, eq=False)
@@ -38,7 +41,7 @@ class Policy:
     """The seed of the run these parameters belong to (`config.seed + index`)."""
     env_steps: int
     """Env steps the checkpoint was trained for (below `config.budget_steps` if unfinished)."""
-    algorithm: Any
+    algorithm: Algorithm
     params: Any
 
     @property
@@ -53,7 +56,8 @@ class Policy:
 
         Raises CmatError if obs or action_mask do not have the spec's shapes."""
         obs, action_mask = self._inputs(obs, action_mask)
-        return _greedy_team(self, self.params, obs, action_mask)
+        actions: jax.Array = _greedy_team(self, self.params, obs, action_mask)
+        return actions
 
     def act(self, obs: Any, action_mask: Any = None, key: jax.Array | None = None) -> jax.Array:
         """Actions sampled as in training (shapes as `greedy`); `key` a jax PRNG key
@@ -62,7 +66,8 @@ class Policy:
         Raises CmatError if obs or action_mask do not have the spec's shapes."""
         obs, action_mask = self._inputs(obs, action_mask)
         key = jax.random.PRNGKey(0) if key is None else key
-        return _sample_team(self, self.params, obs, action_mask, key)
+        actions: jax.Array = _sample_team(self, self.params, obs, action_mask, key)
+        return actions
 
     def make_env(self) -> Any:
         """A new instance of the environment the run trained on, with its `env_kwargs`: an

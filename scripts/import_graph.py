@@ -101,7 +101,10 @@ def main() -> int:
                 print(f"upward import: {module} -> {target}")
                 problems += 1
     package_graph = {
-        module: {target for target in targets if target in graph and not module.startswith(target + ".")}
+        module: {
+            target for target in targets
+            if target in graph and not module.startswith(target + ".")
+        }
         for module, targets in graph.items()
     }
     for component in cycles(package_graph):

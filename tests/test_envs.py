@@ -192,14 +192,15 @@ def test_every_smax_scenario_builds(scenario: str) -> None:
     env = make_env(f"smax:{scenario}")
     spec = env.spec
     assert spec.env_id == f"smax:{scenario}" and spec.has_win_rate and spec.discrete
-    state, timestep = jax.eval_shape(env.reset, jax.random.key(0))
+    _state, timestep = jax.eval_shape(env.reset, jax.random.key(0))
     assert timestep.obs.shape == (spec.num_agents, spec.obs_dim)
     assert timestep.action_mask.shape == (spec.num_agents, spec.action_dim)
 
 
 def test_smax_3m_spec() -> None:
     spec = make_env("smax:3m").spec
-    assert (spec.num_agents, spec.obs_dim, spec.action_dim, spec.max_episode_steps) == (3, 75, 8, 101)
+    shape = (spec.num_agents, spec.obs_dim, spec.action_dim, spec.max_episode_steps)
+    assert shape == (3, 75, 8, 101)
 
 
 # Registry: agent ids and errors.

@@ -155,7 +155,9 @@ def test_the_marl_eval_json_loads_in_marl_eval_with_the_numbers_of_results_json(
 
 
 def copy_grid(grid: tuple[Path, bytes, str], tmp_path: Path) -> Path:
-    return Path(shutil.copytree(grid[0], tmp_path / "smoke", ignore=shutil.ignore_patterns(".lock")))
+    return Path(
+        shutil.copytree(grid[0], tmp_path / "smoke", ignore=shutil.ignore_patterns(".lock"))
+    )
 
 
 def test_report_only_reports_the_runs_on_disk_and_starts_none(

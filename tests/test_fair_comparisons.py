@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -248,7 +249,7 @@ def test_happo_agent_loss_masks_samples_where_the_agent_is_dead() -> None:
     params, batch = dead_agent_batch(algorithm, 3, per_agent=False)
     alive = batch.alive.at[:, 1].set(jnp.array([True, False, True, False, False]))
     batch = batch._replace(alive=alive)
-    loss, metrics = algorithm.agent_loss(jnp.asarray(1), params, batch, config.ppo)
+    _loss, metrics = algorithm.agent_loss(jnp.asarray(1), params, batch, config.ppo)
     distribution = algorithm.agent_distribution(params, jnp.asarray(1), batch)
     log_ratio = np.asarray(distribution.log_prob(batch.actions[:, 1]) - batch.log_probs[:, 1])
     ratio, adv, eps = np.exp(log_ratio), np.asarray(batch.advantages), config.ppo.clip_eps
@@ -364,12 +365,15 @@ def test_the_log_ratio_clamp_changes_nothing_inside_its_bound() -> None:
     for sign in (1.0, -1.0):
         advantages = jnp.full(41, sign)
 
-        def reference(x):
+        def reference(x, advantages=advantages):
             ratio = jnp.exp(x)
             return -jnp.mean(jnp.minimum(ratio * advantages,
                                          jnp.clip(ratio, 0.8, 1.2) * advantages))
 
-        got = jax.grad(lambda x: clipped_surrogate_loss(x, advantages, 0.2)[0])(log_ratio)
+        def surrogate(x, advantages=advantages):
+            return clipped_surrogate_loss(x, advantages, 0.2)[0]
+
+        got = jax.grad(surrogate)(log_ratio)
         np.testing.assert_allclose(got, jax.grad(reference)(log_ratio), rtol=1e-6)
 
 
@@ -518,7 +522,7 @@ def test_ppo_config_defaults_are_the_papers() -> None:
 class StatefulRelay:
     """A ParallelEnv whose "b" leaves after the first step and whose `state()` is [t, 10 + t]."""
 
-    metadata = {"name": "stateful_relay"}
+    metadata: ClassVar[dict[str, Any]] = {"name": "stateful_relay"}
 
     def __init__(self) -> None:
         self.possible_agents = ["a", "b"]

@@ -163,7 +163,8 @@ def test_stopping_the_refinement_early_equals_the_first_iterations(source: str) 
     mask = np.ones((2, 2, 3), bool)
     params = full.init(jax.random.PRNGKey(0), obs, mask)
     _, captured = full.apply(
-        params, obs, mask, capture_intermediates=lambda module, _: isinstance(module, ConsensusDecoder),
+        params, obs, mask,
+        capture_intermediates=lambda module, _: isinstance(module, ConsensusDecoder),
         mutable=["intermediates"],
     )
     vectors = captured["intermediates"]["decoder"]["__call__"][0]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium.spaces as spaces
 import numpy as np
@@ -38,7 +38,7 @@ class RosterGame(ParallelEnv):
     10 steps. Each agent observes [1, t/10]. Records the agents each step's actions went to and
     fails if they are not exactly `env.agents`."""
 
-    metadata = {"name": "roster_game"}
+    metadata: ClassVar[dict[str, Any]] = {"name": "roster_game"}
     LENGTH = 10
 
     def __init__(self) -> None:
@@ -83,8 +83,10 @@ class BoxGame(ParallelEnv):
     so a policy that reaches them scores 0. `unbounded` makes "right" Box(-inf, inf) ×
     [0, inf)."""
 
-    metadata = {"name": "box_game"}
-    TARGETS = {"left": np.array([3.5]), "right": np.array([-7.0, 0.4])}
+    metadata: ClassVar[dict[str, Any]] = {"name": "box_game"}
+    TARGETS: ClassVar[dict[str, np.ndarray]] = {
+        "left": np.array([3.5]), "right": np.array([-7.0, 0.4])
+    }
 
     def __init__(self, unbounded: bool = False) -> None:
         self.possible_agents = ["left", "right"]
@@ -119,7 +121,7 @@ class FaultyGame(ParallelEnv):
     reward as `reward_value`), "nan_obs", "nan_reward", "raise" (the simulator raises, every
     time from then on)."""
 
-    metadata = {"name": "faulty_game"}
+    metadata: ClassVar[dict[str, Any]] = {"name": "faulty_game"}
 
     def __init__(self, fault: str | None = None, at: int = 0, reward_value: Any = 1.0) -> None:
         self.possible_agents = ["p", "q"]
@@ -271,7 +273,7 @@ def test_a_policy_learns_to_hit_targets_inside_boxes_far_from_zero() -> None:
 )
 def test_malformed_returns_are_error_line(kwargs: dict, message: str) -> None:
     env = make_host_env(FAULTY, **kwargs)
-    with pytest.raises(CmatError, match="^pettingzoo:.*faulty_game: ") as raised:
+    with pytest.raises(CmatError, match=r"^pettingzoo:.*faulty_game: ") as raised:
         env.reset()
         for _ in range(5):
             env.step(np.zeros(2, int))
@@ -327,11 +329,13 @@ def test_an_env_that_always_crashes_stops_after_the_limit(
     pool = (InProcessPool(FAULTY, kwargs, [0], crash_limit=3) if pool_kind == "in_process"
             else WorkerPool(FAULTY, kwargs, [0], workers=1, crash_limit=3))
     try:
-        with caplog.at_level(logging.WARNING, logger="cmat.host"):
-            with pytest.raises(CmatError, match=r"environment 0 crashed 3 times in a row \(last: "
-                                                r".*RuntimeError: the simulator fell over at "
-                                                r"reset\); stopped \(host_crash_limit=3\)"):
-                pool.reset()
+        with (
+            caplog.at_level(logging.WARNING, logger="cmat.host"),
+            pytest.raises(CmatError, match=r"environment 0 crashed 3 times in a row \(last: "
+                                           r".*RuntimeError: the simulator fell over at "
+                                           r"reset\); stopped \(host_crash_limit=3\)"),
+        ):
+            pool.reset()
     finally:
         pool.close()
     if pool_kind == "in_process":

@@ -15,7 +15,7 @@ import os
 import signal
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium.spaces as spaces
 import jax
@@ -55,7 +55,7 @@ class SignalGame(ParallelEnv):
     without sharing the cue is 5/3 (the striker guesses).
     """
 
-    metadata = {"name": "signal_game", "has_win_rate": True}
+    metadata: ClassVar[dict[str, Any]] = {"name": "signal_game", "has_win_rate": True}
     LENGTH = 5
 
     def __init__(self, order: tuple[int, int] = (0, 1), fail_at: int | None = None) -> None:
@@ -119,7 +119,7 @@ class ReachGame(ParallelEnv):
     observe a private random vector of size 2 + i. Episodes last 10 steps. `order` permutes the
     agents; each agent's observation depends only on its identity, not on its position."""
 
-    metadata = {"name": "reach_game"}
+    metadata: ClassVar[dict[str, Any]] = {"name": "reach_game"}
     LOW, HIGH, TARGET = -0.2, 0.3, 0.1
 
     def __init__(self, order: tuple[int, ...] = (0, 1, 2)) -> None:
@@ -161,7 +161,7 @@ class ReachGame(ParallelEnv):
 class RelayGame(ParallelEnv):
     """Agent "b" terminates after the first step, "a" after the third; records what is sent."""
 
-    metadata = {"name": "relay_game"}
+    metadata: ClassVar[dict[str, Any]] = {"name": "relay_game"}
 
     def __init__(self) -> None:
         self.possible_agents = ["a", "b"]

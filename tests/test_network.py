@@ -33,7 +33,10 @@ def build(discrete: bool, **network: object) -> tuple[CMAT, object, jax.Array, j
 def test_permuting_agents_permutes_policies_and_keeps_value_and_consensus(discrete: bool) -> None:
     algorithm, params, obs, mask = build(discrete)
     permutation = np.array([3, 0, 4, 1, 2])
-    apply = lambda o, m: algorithm.network.apply(params, o, m)
+
+    def apply(o, m):
+        return algorithm.network.apply(params, o, m)
+
     original, permuted = apply(obs, mask), apply(obs[:, permutation], mask[:, permutation])
     np.testing.assert_allclose(permuted.value, original.value, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(permuted.consensus, original.consensus, rtol=1e-5, atol=1e-5)
@@ -64,7 +67,8 @@ def test_masked_actions_have_zero_probability_and_are_never_sampled() -> None:
     output = algorithm.network.apply(params, obs, mask)
     probs = jax.nn.softmax(output.action_params, axis=-1)
     assert float(jnp.max(jnp.where(mask, 0.0, probs))) == 0.0
-    assert np.isfinite(float(jnp.sum(action_distribution(output.action_params, output.log_std, True).entropy())))
+    distribution = action_distribution(output.action_params, output.log_std, True)
+    assert np.isfinite(float(jnp.sum(distribution.entropy())))
 
 
 @pytest.mark.parametrize("causal", [False, True])
@@ -73,7 +77,9 @@ def test_attention_matches_flax_reference_attention(causal: bool) -> None:
     x = jax.random.normal(jax.random.PRNGKey(0), (2, 5, 16))
     memory = jax.random.normal(jax.random.PRNGKey(1), (2, 5, 16))
     params = attention.init(jax.random.PRNGKey(2), x, memory)["params"]
-    params = jax.tree.map(lambda p: p + 0.1 * jax.random.normal(jax.random.PRNGKey(3), p.shape), params)
+    params = jax.tree.map(
+        lambda p: p + 0.1 * jax.random.normal(jax.random.PRNGKey(3), p.shape), params
+    )
 
     def project(name: str, inputs: jax.Array) -> jax.Array:
         layer = params[name]

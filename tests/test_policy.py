@@ -93,7 +93,7 @@ def test_inputs_of_the_wrong_shape_are_one_error(
 
 
 def test_runs_that_cannot_be_loaded_are_one_error(smax_run: Path, tmp_path: Path) -> None:
-    with pytest.raises(CmatError, match="trained seeds 5..6; there is no seed 7"):
+    with pytest.raises(CmatError, match=r"trained seeds 5..6; there is no seed 7"):
         cmat.load_policy(smax_run, seed=7)
     with pytest.raises(CmatError, match="holds no run"):
         cmat.load_policy(tmp_path)
@@ -112,7 +112,8 @@ def test_runs_that_cannot_be_loaded_are_one_error(smax_run: Path, tmp_path: Path
     other = tmp_path / "other"
     other.mkdir()
     (other / "config.yaml").write_text("\n".join(
-        ["# written by cmat 0.0.1", *(line.replace("n_embd: 64", "n_embd: 32") for line in text[1:])]
+        ["# written by cmat 0.0.1",
+         *(line.replace("n_embd: 64", "n_embd: 32") for line in text[1:])]
     ) + "\n")
     (other / "checkpoints").mkdir()
     (other / "checkpoints" / "latest.ckpt").write_bytes(

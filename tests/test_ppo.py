@@ -31,7 +31,9 @@ def test_gae_matches_a_plain_loop() -> None:
     advantages, returns = ppo.generalized_advantages(
         jnp.asarray(rewards), jnp.asarray(values), jnp.asarray(dones), jnp.asarray(last), 0.97, 0.9
     )
-    expected_adv, expected_ret = plain_gae(rewards, values, dones.astype(np.float32), last, 0.97, 0.9)
+    expected_adv, expected_ret = plain_gae(
+        rewards, values, dones.astype(np.float32), last, 0.97, 0.9
+    )
     np.testing.assert_allclose(advantages, expected_adv, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(returns, expected_ret, rtol=1e-5, atol=1e-5)
 
@@ -54,9 +56,13 @@ def test_clipped_surrogate_matches_numpy_reference() -> None:
     log_ratio = rng.normal(scale=0.2, size=256)
     advantages = rng.normal(size=256)
     eps = 0.05
-    loss, diagnostics = ppo.clipped_surrogate_loss(jnp.asarray(log_ratio), jnp.asarray(advantages), eps)
+    loss, diagnostics = ppo.clipped_surrogate_loss(
+        jnp.asarray(log_ratio), jnp.asarray(advantages), eps
+    )
     ratio = np.exp(log_ratio)
-    expected = -np.mean(np.minimum(ratio * advantages, np.clip(ratio, 1 - eps, 1 + eps) * advantages))
+    expected = -np.mean(
+        np.minimum(ratio * advantages, np.clip(ratio, 1 - eps, 1 + eps) * advantages)
+    )
     assert float(loss) == pytest.approx(expected, rel=1e-5)
     assert float(diagnostics["clip_frac"]) == pytest.approx(np.mean(np.abs(ratio - 1) > eps))
 
@@ -78,7 +84,9 @@ def test_value_loss_matches_numpy_reference(huber: bool, clipped: bool) -> None:
     expected = error(values)
     if clipped:
         expected = np.maximum(expected, error(old + np.clip(values - old, -eps, eps)))
-    config = PPOConfig(clip_eps=eps, huber_loss=huber, huber_delta=delta, clipped_value_loss=clipped)
+    config = PPOConfig(
+        clip_eps=eps, huber_loss=huber, huber_delta=delta, clipped_value_loss=clipped
+    )
     loss = ppo.value_loss(jnp.asarray(values), jnp.asarray(old), jnp.asarray(targets), config)
     assert float(loss) == pytest.approx(float(np.mean(expected)), rel=1e-5)
 
@@ -92,4 +100,6 @@ def test_value_norm_round_trip_and_statistics() -> None:
     normalized = ppo.value_norm_normalize(state, x)
     assert abs(float(jnp.mean(normalized))) < 0.2
     assert abs(float(jnp.std(normalized)) - 1.0) < 0.1
-    np.testing.assert_allclose(ppo.value_norm_denormalize(state, normalized), x, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(
+        ppo.value_norm_denormalize(state, normalized), x, rtol=1e-4, atol=1e-4
+    )

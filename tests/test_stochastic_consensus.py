@@ -98,7 +98,9 @@ def test_joint_ratio_is_one_at_the_collecting_parameters_and_moves_with_the_late
     assert np.abs(np.asarray(moved_ratio)).max() > 1e-3
 
 
-def joint_distribution(algorithm: CMAT, params: object, obs: jax.Array, mask: jax.Array) -> jax.Array:
+def joint_distribution(
+    algorithm: CMAT, params: object, obs: jax.Array, mask: jax.Array
+) -> jax.Array:
     """P(a1, a2) = Σ_z π_c(z | O) π_1(a1 | O, z) π_2(a2 | O, z) (a deterministic consensus: the
     single product)."""
     codes = algorithm.network.config.consensus_codes if algorithm.stochastic else 1
@@ -193,7 +195,7 @@ PENALTY_RUN = (
 def test_fine_tuning_trains_the_consensus_policy_with_the_consensus_only(
     mode: str, trains_latent: bool
 ) -> None:
-    algorithm, params, _ = acted("categorical")
+    _algorithm, params, _ = acted("categorical")
     labels = finetune_labels(params, mode)["params"]
     assert set(jax.tree.leaves(labels["latent_consensus"])) == {TRAIN if trains_latent else FROZEN}
     assert set(jax.tree.leaves(labels["actor_mlp"])) == {FROZEN if trains_latent else TRAIN}

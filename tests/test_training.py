@@ -1,4 +1,5 @@
-"""The trainer: CMAT's loss on a fixed batch, the target critic, seeds, and tasks actually learned."""
+"""The trainer: CMAT's loss on a fixed batch, the target critic, seeds, and tasks actually
+learned."""
 
 from __future__ import annotations
 
@@ -68,7 +69,8 @@ def test_cmat_loss_matches_numpy_reference_on_a_fixed_batch() -> None:
     total, metrics = algorithm.loss(params, batch, ppo)
     output = algorithm.network.apply(params, batch.obs, batch.action_mask)
     expected = numpy_cmat_loss(
-        np.asarray(output.action_params, np.float64), np.asarray(output.value, np.float64), batch, ppo
+        np.asarray(output.action_params, np.float64), np.asarray(output.value, np.float64), batch,
+        ppo,
     )
     for key in ("policy_loss", "entropy", "value_loss"):
         assert float(metrics[key]) == pytest.approx(expected[key], rel=1e-4, abs=1e-5), key
@@ -85,7 +87,8 @@ def test_joint_ratio_is_one_at_the_collecting_parameters() -> None:
     )
     batch = batch._replace(actions=acted.actions, log_probs=acted.log_probs)
     _, metrics = algorithm.loss(params, batch, PPOConfig())
-    assert float(metrics["policy_loss"]) == pytest.approx(-float(jnp.mean(batch.advantages)), abs=1e-5)
+    expected = -float(jnp.mean(batch.advantages))
+    assert float(metrics["policy_loss"]) == pytest.approx(expected, abs=1e-5)
     assert float(metrics["approx_kl"]) == pytest.approx(0.0, abs=1e-6)
     assert float(metrics["clip_frac"]) == 0.0
 
@@ -108,8 +111,9 @@ def test_seeds_in_one_program_match_separate_runs() -> None:
     together = Trainer(load_config(overrides=[*overrides, "seeds=2", "seed=3"]))
     alone = Trainer(load_config(overrides=[*overrides, "seeds=1", "seed=4"]))
     state_together, metrics_together = together.train_chunk(together.init())
-    state_alone, metrics_alone = alone.train_chunk(alone.init())
-    for both, one in zip(jax.tree.leaves(state_together.params), jax.tree.leaves(state_alone.params)):
+    state_alone, _metrics_alone = alone.train_chunk(alone.init())
+    leaves_together = jax.tree.leaves(state_together.params)
+    for both, one in zip(leaves_together, jax.tree.leaves(state_alone.params)):
         np.testing.assert_allclose(both[1], one[0], rtol=1e-4, atol=1e-5)
     assert any(not np.allclose(leaf[0], leaf[1]) for leaf in jax.tree.leaves(state_together.params))
     assert metrics_together["env_steps"].tolist() == [160, 160]

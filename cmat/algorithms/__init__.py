@@ -68,19 +68,22 @@ def algorithm_class(name: str) -> type[Algorithm]:
 
 def reference_defaults(name: str) -> dict[str, Any]:
     """The named algorithm's reference settings (its class's `reference_defaults`)."""
-    return algorithm_class(name).reference_defaults
+    defaults: dict[str, Any] = algorithm_class(name).reference_defaults
+    return defaults
 
 
 def algorithm_presets(name: str) -> dict[str, dict[str, Any]]:
     """The named algorithm's presets (its class's `presets`: name -> config values)."""
-    return algorithm_class(name).presets
+    presets: dict[str, dict[str, Any]] = algorithm_class(name).presets
+    return presets
 
 
 def build_algorithm(
     name: str, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
 ) -> Algorithm:
     """The named algorithm's `build(config, spec, ppo)`."""
-    return algorithm_class(name).build(config, spec, ppo or PPOConfig())
+    algorithm: Algorithm = algorithm_class(name).build(config, spec, ppo or PPOConfig())
+    return algorithm
 
 
 def check_config(config: TrainConfig) -> TrainConfig:
@@ -90,7 +93,7 @@ def check_config(config: TrainConfig) -> TrainConfig:
     Raises CmatError naming the field and the algorithms that accept it."""
     cls = algorithm_class(config.algo)
     if config.finetune is not None and config.finetune not in cls.finetune_stages:
-        able = [name for name, other in registry().items() if config.finetune in other.finetune_stages]
+        able = [n for n, other in registry().items() if config.finetune in other.finetune_stages]
         raise CmatError(
             f"invalid config: fine-tuning (finetune={config.finetune}) is supported only for "
             f"algo {', '.join(able) or 'none'}, got {config.algo!r}"

@@ -91,7 +91,9 @@ class Algorithm(Protocol):
     """Named sets of config values (`TrainConfig.preset`); 'paper' is the paper's setting."""
 
     @classmethod
-    def build(cls, network: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = ...) -> Any: ...
+    def build(
+        cls, network: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+    ) -> Any: ...
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params: ...
 

@@ -14,7 +14,7 @@ own coefficient, `ppo.consensus_ent_coef`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple, cast
 
 import distrax
 import jax
@@ -95,7 +95,9 @@ class CMAT(PPOAlgorithm):
     }
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> CMAT:
+    def build(
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+    ) -> CMAT:
         return cls(CMATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
@@ -106,19 +108,18 @@ class CMAT(PPOAlgorithm):
         global_state: jax.Array | None = None,
     ) -> ActResult:
         """Sample the team's actions (the global state is not used: V(O) reads observations)."""
-        latent = {}
+        latent: dict[str, Any] = {}
         if self.stochastic:
             latent_key, key = jax.random.split(key)
             latent = {"latent_key": latent_key}
-        output = self.network.apply(params, obs, action_mask, **latent)
+        output = cast(PolicyOutput, self.network.apply(params, obs, action_mask, **latent))
         distribution = action_distribution(
             output.action_params, output.log_std, self.network.discrete
         )
         actions, log_probs = distribution.sample_and_log_prob(seed=key)
         if self.stochastic:
-            return ActResult(
-                actions, log_probs, output.value, LatentSample(output.latent, output.latent_log_prob)
-            )
+            sample = LatentSample(output.latent, output.latent_log_prob)
+            return ActResult(actions, log_probs, output.value, sample)
         return ActResult(actions, log_probs, output.value)
 
     @property
@@ -126,14 +127,14 @@ class CMAT(PPOAlgorithm):
         return self.network.config.consensus_policy != "deterministic"
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
-        output = self.network.apply(params, obs, action_mask)
+        output = cast(PolicyOutput, self.network.apply(params, obs, action_mask))
         return greedy_action(output.action_params, self.network.discrete)
 
     def value(
         self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
     ) -> jax.Array:
         """V(O) from the observations (paper eq. critic); the global state is not used."""
-        return self.network.apply(params, obs, method="value")
+        return cast(jax.Array, self.network.apply(params, obs, method="value"))
 
     def log_ratio(
         self, params: Params, batch: Batch
@@ -141,9 +142,12 @@ class CMAT(PPOAlgorithm):
         """log π(A, z | O) − log π_old(A, z | O) per sample: Σ_i of the per-agent log-ratios
         (eq. ratio), plus log π_c(z | O) − log π_c,old(z | O) with a stochastic consensus
         (eq. joint-stochastic). Also returns the network output and the action distribution."""
-        sampled: LatentSample | tuple = batch.extras
-        latent = {"latent": sampled.latent} if self.stochastic else {}
-        output = self.network.apply(params, batch.obs, batch.action_mask, **latent)
+        # `()` with a deterministic consensus, read only with a stochastic one.
+        sampled: LatentSample = batch.extras
+        latent: dict[str, Any] = {"latent": sampled.latent} if self.stochastic else {}
+        output = cast(
+            PolicyOutput, self.network.apply(params, batch.obs, batch.action_mask, **latent)
+        )
         distribution = action_distribution(
             output.action_params, output.log_std, self.network.discrete
         )

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import distrax
 import jax
@@ -110,15 +110,16 @@ class HAPPO(MAPPO):
     ) -> tuple[jax.Array, jax.Array]:
         """Agent i's own actor on o_i: action parameters [..., n, A] and log-stds [n, A]."""
         apply = jax.vmap(self.actor.apply, in_axes=(0, -2, -2), out_axes=(-2, 0))
-        return apply(params["actor"], obs, action_mask)
+        return cast(tuple[jax.Array, jax.Array], apply(params["actor"], obs, action_mask))
 
     def agent_distribution(
         self, params: Params, agent: jax.Array, batch: Batch
     ) -> distrax.Distribution:
         """One agent's distributions [B] on the samples of a batch."""
         actor = jax.tree.map(lambda x: x[agent], params["actor"])
-        action_params, log_std = self.actor.apply(
-            actor, batch.obs[:, agent], batch.action_mask[:, agent]
+        action_params, log_std = cast(
+            tuple[jax.Array, jax.Array],
+            self.actor.apply(actor, batch.obs[:, agent], batch.action_mask[:, agent]),
         )
         return action_distribution(action_params, log_std, self.discrete)
 
@@ -172,7 +173,11 @@ class HAPPO(MAPPO):
         def restart(state: Any) -> Any:
             return select_state(optimizer, everywhere, state, opt_state, steps_from_new=False)
 
-        def update_agent(carry: tuple, step: tuple[jax.Array, jax.Array]) -> tuple[tuple, dict]:
+        Carry = tuple[Params, Any, jax.Array]
+
+        def update_agent(
+            carry: Carry, step: tuple[jax.Array, jax.Array]
+        ) -> tuple[Carry, dict[str, jax.Array]]:
             params, state, new_log_probs = carry
             agent, key = step
             factor = compounding_factors(new_log_probs, batch.log_probs, order)[:, agent]

@@ -13,7 +13,7 @@ the reference's optional recurrent one.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import distrax
 import jax
@@ -56,7 +56,9 @@ class MAPPO(PPOAlgorithm):
     targets from the collecting critic, active masks."""
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> MAPPO:
+    def build(
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+    ) -> MAPPO:
         actor = MLPActor(
             config.n_embd, spec.action_dim, spec.discrete, config.init_gain, config.log_std_init
         )
@@ -97,7 +99,10 @@ class MAPPO(PPOAlgorithm):
         self, params: Params, obs: jax.Array, action_mask: jax.Array
     ) -> tuple[jax.Array, jax.Array]:
         """Every agent's action parameters [..., n, A] and log-std."""
-        return self.actor.apply(params["actor"], self.actor_inputs(obs), action_mask)
+        return cast(
+            tuple[jax.Array, jax.Array],
+            self.actor.apply(params["actor"], self.actor_inputs(obs), action_mask),
+        )
 
     def distribution(
         self, params: Params, obs: jax.Array, action_mask: jax.Array
@@ -119,7 +124,9 @@ class MAPPO(PPOAlgorithm):
         self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
     ) -> jax.Array:
         """V(s) of the team (`critic_input`)."""
-        return self.critic.apply(params["critic"], self.critic_input(obs, global_state))
+        return cast(
+            jax.Array, self.critic.apply(params["critic"], self.critic_input(obs, global_state))
+        )
 
     def critic_loss(self, params: Params, batch: Batch, ppo: PPOConfig) -> jax.Array:
         """The team value loss (one value per sample: no agent to mask)."""

@@ -16,7 +16,7 @@ its own collecting-time value stored with the transition (`ActResult.extras`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import jax
 import jax.numpy as jnp
@@ -57,7 +57,10 @@ class MAT(PPOAlgorithm):
     hyper-parameters are the dataclass defaults."""
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> MAT:
+    def build(
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+    ) -> MAT:
+        ppo = ppo if ppo is not None else PPOConfig()
         network = MATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete)
         return cls(network, ppo.per_agent_gae)
 
@@ -75,7 +78,9 @@ class MAT(PPOAlgorithm):
 
     def encode(self, params: Params, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Ô and the per-agent values V(ô_i)."""
-        return self.network.apply(params, obs, method=MATNetwork.encode)
+        return cast(
+            tuple[jax.Array, jax.Array], self.network.apply(params, obs, method=MATNetwork.encode)
+        )
 
     def decode(
         self,
@@ -86,8 +91,9 @@ class MAT(PPOAlgorithm):
         key: jax.Array | None,
     ) -> tuple[jax.Array, jax.Array]:
         """Autoregressive actions along `order` and their per-agent log-probs."""
-        return self.network.apply(
-            params, encoded, action_mask, order, key, method=MATNetwork.decode
+        return cast(
+            tuple[jax.Array, jax.Array],
+            self.network.apply(params, encoded, action_mask, order, key, method=MATNetwork.decode),
         )
 
     def act(
@@ -112,13 +118,18 @@ class MAT(PPOAlgorithm):
         """[n] per-agent values V(ô_i) with per-agent GAE, else V(O) = their mean."""
         if self.per_agent_gae:
             return self.encode(params, obs)[1]
-        return self.network.apply(params, obs, method=MATNetwork.value)
+        return cast(jax.Array, self.network.apply(params, obs, method=MATNetwork.value))
 
     def teacher_forced(self, params: Params, batch: Batch, orders: jax.Array) -> MATOutput:
         """Network outputs for every sample of the batch, decoded along orders [B, n]."""
-        return jax.vmap(
-            self.network.apply, in_axes=(None, 0, 0, 0, 0), out_axes=MATOutput(0, None, 0, 0)
-        )(params, batch.obs, batch.action_mask, batch.actions, orders)
+        # `_make`: the axes spec holds ints and None where MATOutput declares arrays.
+        out_axes = MATOutput._make((0, None, 0, 0))
+        return cast(
+            MATOutput,
+            jax.vmap(self.network.apply, in_axes=(None, 0, 0, 0, 0), out_axes=out_axes)(
+                params, batch.obs, batch.action_mask, batch.actions, orders
+            ),
+        )
 
     def loss_along(
         self,

@@ -11,7 +11,7 @@ mean advantage of the active agents), weighted by `ppo.order_loss_coef`, added t
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -62,7 +62,9 @@ class PMAT(PPOAlgorithm):
     presets: ClassVar[dict[str, dict[str, Any]]] = MAT.presets
 
     @classmethod
-    def build(cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()) -> PMAT:
+    def build(
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+    ) -> PMAT:
         return cls(MAT.build(config, spec, ppo), OrderScorer(config.n_embd, config.init_gain))
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
@@ -74,7 +76,8 @@ class PMAT(PPOAlgorithm):
     def scores(self, params: Params, obs: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Ô, the per-agent values and the agents' order scores."""
         encoded, agent_values = self.mat.encode(params["mat"], obs)
-        return encoded, agent_values, self.scorer.apply(params["scorer"], encoded)
+        scores = cast(jax.Array, self.scorer.apply(params["scorer"], encoded))
+        return encoded, agent_values, scores
 
     def act(
         self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
@@ -107,7 +110,7 @@ class PMAT(PPOAlgorithm):
         total, metrics, output = self.mat.loss_along(
             params["mat"], batch, sampled.order, sampled.agent_values, ppo
         )
-        scores = self.scorer.apply(params["scorer"], output.encoded)
+        scores = cast(jax.Array, self.scorer.apply(params["scorer"], output.encoded))
         advantages = batch.advantages
         if advantages.ndim == 2:
             mask = active_mask(batch, ppo)

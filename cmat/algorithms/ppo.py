@@ -31,7 +31,9 @@ def generalized_advantages(
     not_done = 1.0 - dones.astype(values.dtype)
     deltas = rewards + gamma * next_values * not_done - values
 
-    def backward(carry: jax.Array, step: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+    def backward(
+        carry: jax.Array, step: tuple[jax.Array, jax.Array]
+    ) -> tuple[jax.Array, jax.Array]:
         delta, keep = step
         advantage = delta + gamma * gae_lambda * keep * carry
         return advantage, advantage
@@ -177,7 +179,8 @@ def value_loss(
     def error(prediction: jax.Array) -> jax.Array:
         residual = targets - prediction
         if ppo.huber_loss:
-            return optax.huber_loss(residual, delta=ppo.huber_delta)
+            huber: jax.Array = optax.huber_loss(residual, delta=ppo.huber_delta)
+            return huber
         return 0.5 * jnp.square(residual)
 
     loss = error(values)

@@ -41,7 +41,9 @@ def minibatch_sgd(
     """
     grad_fn = jax.value_and_grad(loss, has_aux=True)
 
-    def minibatch_step(carry: tuple[Params, Any], minibatch: Batch) -> tuple[tuple[Params, Any], Metrics]:
+    def minibatch_step(
+        carry: tuple[Params, Any], minibatch: Batch
+    ) -> tuple[tuple[Params, Any], Metrics]:
         params, opt_state = carry
         (value, metrics), grads = grad_fn(params, minibatch, ppo)
         updates, opt_state = optimizer.update(grads, opt_state, params)

@@ -29,6 +29,6 @@ class TripleBERT(CMAT):
 
     @classmethod
     def build(
-        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig = PPOConfig()
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
     ) -> TripleBERT:
         return cls(TripleBERTNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))

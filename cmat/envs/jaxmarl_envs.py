@@ -2,7 +2,8 @@
 
 Per-agent dicts become arrays stacked in `env.agents` order, and the team reward is the mean of
 the agents' rewards: SMAX gives every ally the same reward, so the mean is that reward;
-simple_spread mixes a shared coverage reward with per-agent collision penalties (`local_ratio`). The adapters call `step_env` and reset automatically themselves, so `won` is read from the
+simple_spread mixes a shared coverage reward with per-agent collision penalties (`local_ratio`).
+The adapters call `step_env` and reset automatically themselves, so `won` is read from the
 terminal state before it is replaced by the next episode's first state.
 
 JaxMARL ends an episode on the transition taken at `step == max_steps`, so episodes last up to
@@ -15,7 +16,7 @@ import contextlib
 import inspect
 import io
 import sys
-from typing import Any
+from typing import Any, cast
 from unittest import mock
 
 import jax
@@ -77,7 +78,8 @@ class JaxMarlEnv:
             obs_dim=env.observation_spaces[agent].shape[0],
             action_dim=env.action_spaces[agent].n,
             discrete=True,
-            max_episode_steps=env.max_steps + 1,
+            # every JaxMARL environment sets max_steps; MultiAgentEnv does not declare it
+            max_episode_steps=cast(Any, env).max_steps + 1,
             has_win_rate=has_win_rate,
             state_dim=state_dim,
         )
@@ -150,7 +152,10 @@ class SmaxEnv(JaxMarlEnv):
     exactly when SMAX pays its `won_battle_bonus`. Dead allies may only take the stop action.
     """
 
+    env: HeuristicEnemySMAX
+
     def __init__(self, scenario: str, **kwargs: Any) -> None:
+        env: HeuristicEnemySMAX
         if scenario in smax_healer.SCENARIOS:
             env = smax_healer.HeuristicEnemyHealerSMAX(
                 scenario=smax_healer.SCENARIOS[scenario], **kwargs
@@ -163,7 +168,8 @@ class SmaxEnv(JaxMarlEnv):
         return self._stack(self.env.get_avail_actions(state)).astype(bool)
 
     def _alive(self, state: Any) -> jax.Array:
-        return state.state.unit_alive[: self.env.num_allies]
+        alive: jax.Array = state.state.unit_alive
+        return alive[: self.env.num_allies]
 
     def _won(self, state: Any) -> jax.Array:
         alive, n_allies = state.state.unit_alive, self.env.num_allies

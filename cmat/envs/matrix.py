@@ -9,7 +9,7 @@ id keeps the policy order independent: permuting the agents permutes their ids w
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -77,5 +77,5 @@ def penalty(k: float = -100.0) -> MatrixGame:
     return MatrixGame("matrix:penalty", [[10.0, 0.0, k], [0.0, 2.0, 0.0], [k, 0.0, 10.0]])
 
 
-GAMES = {"fig1": fig1, "penalty": penalty}
+GAMES: dict[str, Callable[..., MatrixGame]] = {"fig1": fig1, "penalty": penalty}
 """Matrix game name → factory; the factory's keyword arguments are the game's options."""

@@ -76,7 +76,7 @@ import dataclasses
 import inspect
 from collections.abc import Callable
 from functools import partial
-from typing import Any
+from typing import Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -110,7 +110,7 @@ MARINE, MARAUDER, MEDIVAC = 0, 1, 6
 STOP = 4
 """SMAX's stop action (0-3 move north, east, south, west; actions from 5 name targets)."""
 
-_MEDIVAC_STATS = {
+_MEDIVAC_STATS: dict[str, Any] = {
     "unit_type_names": "medivac",
     "unit_type_shorthands": "V",
     "unit_type_velocities": 3.5,
@@ -293,7 +293,7 @@ class HealerSMAX(SMAX):
         energy = jnp.clip(
             energy - amount / HP_PER_ENERGY + regen, 0.0, self.unit_type_max_energy[types]
         )
-        return state.replace(unit_health=health, unit_energy=energy)
+        return dataclasses.replace(state, unit_health=health, unit_energy=energy)
 
     def _update_dead_agents(self, state: State) -> State:
         """SMAX's deaths; a team with no unit left that can attack is out of the battle."""
@@ -303,29 +303,31 @@ class HealerSMAX(SMAX):
         team_fights = jnp.where(
             is_ally, fighting[: self.num_allies].any(), fighting[self.num_allies :].any()
         )
-        return state.replace(unit_alive=state.unit_alive & team_fights)
+        return dataclasses.replace(state, unit_alive=state.unit_alive & team_fights)
 
     def _push_units_away(self, state: State, firmness: float = 1.0) -> State:
         """SMAX's collisions between ground units; flying units collide with nothing (SMAX
         pushes only living units, so the pass counts them as dead)."""
         alive, flying = state.unit_alive, self.unit_type_flying[state.unit_types]
-        state = super()._push_units_away(state.replace(unit_alive=alive & ~flying), firmness)
-        return state.replace(unit_alive=alive)
+        pushed = dataclasses.replace(state, unit_alive=alive & ~flying)
+        state = super()._push_units_away(pushed, firmness)
+        return dataclasses.replace(state, unit_alive=alive)
 
     @partial(jax.jit, static_argnums=(0,))
     def compute_reward(
         self, state: State, health_before: jax.Array, health_after: jax.Array
     ) -> dict[str, jax.Array]:
         """SMAX's reward counting each unit's net health loss only (healing pays nothing)."""
-        return super().compute_reward(
+        rewards: dict[str, jax.Array] = super().compute_reward(
             state, health_before, jnp.minimum(health_after, health_before)
         )
+        return rewards
 
     # Observations: a Medivac's weapon cooldown slot shows its energy.
 
     @partial(jax.jit, static_argnums=(0,))
     def _observe_features(self, state: State, i: jax.Array, j_idx: jax.Array) -> jax.Array:
-        features = super()._observe_features(state, i, j_idx)
+        features: jax.Array = super()._observe_features(state, i, j_idx)
         slot = self.unit_features.index("weapon_cooldown")
         energy, has_energy = self._energy_fraction(state)
         return features.at[slot].set(
@@ -334,7 +336,7 @@ class HealerSMAX(SMAX):
 
     @partial(jax.jit, static_argnums=(0,))
     def _get_own_features(self, state: State, i: jax.Array) -> jax.Array:
-        features = super()._get_own_features(state, i)
+        features: jax.Array = super()._get_own_features(state, i)
         slot = self.own_features.index("weapon_cooldown")
         energy, has_energy = self._energy_fraction(state)
         shown = has_energy[i] & state.unit_alive[i]
@@ -369,10 +371,10 @@ def healer_heuristic_policy(
 
     The returned `policy(key, policy_state, obs, slot)` needs the unit's `slot`: its own
     position in its team's target-slot order (ally i: i; the enemy of global index i:
-    `num_agents - 1 - i`), which the observation does not reveal. A healer heals the most injured teammate in range, else
-    moves towards the most injured teammate it sees, else towards the teammates it sees, else
-    (alone) as the heuristic moves. Other units play JaxMARL's heuristic, blind to flying units
-    they cannot shoot.
+    `num_agents - 1 - i`), which the observation does not reveal. A healer heals the most
+    injured teammate in range, else moves towards the most injured teammate it sees, else
+    towards the teammates it sees, else (alone) as the heuristic moves. Other units play
+    JaxMARL's heuristic, blind to flying units they cannot shoot.
     """
     fighter = create_heuristic_policy(world, team, shoot=shoot, attack_mode=attack_mode)
     mover = create_heuristic_policy(world, team, shoot=False)
@@ -444,7 +446,7 @@ class HeuristicEnemyHealerSMAX(HeuristicEnemySMAX):
     @property
     def world(self) -> HealerSMAX:
         """The two-team SMAX world the enemy heuristic plays in."""
-        return self._env
+        return cast(HealerSMAX, self._env)  # set in __init__; the base class declares SMAX
 
     def get_enemy_actions(
         self, key: jax.Array, policy_state: HeuristicPolicyState, enemy_obs: jax.Array
@@ -523,7 +525,9 @@ def first_episode_wins(
     over-represented as they are in win rates counted over a fixed number of steps.
     """
 
-    def one_step(carry: tuple[Any, TimeStep, jax.Array, jax.Array], key: jax.Array) -> tuple:
+    Carry = tuple[Any, TimeStep, jax.Array, jax.Array]
+
+    def one_step(carry: Carry, key: jax.Array) -> tuple[Carry, None]:
         state, timestep, finished, won = carry
         action_key, step_key = jax.random.split(key)
         actions = policy(action_key, state, timestep)

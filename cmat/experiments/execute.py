@@ -135,8 +135,10 @@ def run_cmat(argv: list[str], log_path: str, cache: str) -> int:
     """Run `python -m cmat ARGV` with this interpreter, appending its output to `log_path`
     (what a Ray task executes on its node)."""
     with open(log_path, "a") as log:
-        return subprocess.run([sys.executable, "-m", "cmat", *argv], stdout=log,
-                              stderr=subprocess.STDOUT, env=child_env(cache), check=False).returncode
+        return subprocess.run(
+            [sys.executable, "-m", "cmat", *argv], stdout=log, stderr=subprocess.STDOUT,
+            env=child_env(cache), check=False,
+        ).returncode
 
 
 def child_env(cache: str, parent: int | None = None) -> dict[str, str]:
@@ -158,14 +160,16 @@ class LocalExecutor:
     def __init__(self, cache: Path) -> None:
         self.cache = str(cache)
 
-    def submit(self, argv: list[str], log: Path) -> subprocess.Popen:
+    def submit(self, argv: list[str], log: Path) -> subprocess.Popen[bytes]:
         with log.open("a") as file:
             return subprocess.Popen(
                 [sys.executable, "-m", "cmat", *argv], stdout=file, stderr=subprocess.STDOUT,
                 env=child_env(self.cache, parent=os.getpid()),
             )
 
-    def wait(self, handles: list[subprocess.Popen]) -> tuple[subprocess.Popen, int]:
+    def wait(
+        self, handles: list[subprocess.Popen[bytes]]
+    ) -> tuple[subprocess.Popen[bytes], int]:
         while True:
             for process in handles:
                 code = process.poll()
@@ -173,7 +177,7 @@ class LocalExecutor:
                     return process, code
             time.sleep(0.2)
 
-    def stop(self, handles: list[subprocess.Popen]) -> None:
+    def stop(self, handles: list[subprocess.Popen[bytes]]) -> None:
         """Interrupt running runs (they keep their last checkpoint), then kill stragglers."""
         for process in handles:
             if process.poll() is None:

@@ -48,7 +48,8 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
                    "common task.")
     else:
         out += [(f"Lines of the variants that run on every task, over {len(agg['tasks'])} "
-                 f"task(s) ({', '.join(agg['tasks'])}) where each of them has final scores; win rates as they are, returns min-max normalised per "
+                 f"task(s) ({', '.join(agg['tasks'])}) where each of them has final scores; "
+                 f"win rates as they are, returns min-max normalised per "
                  f"task; stratified bootstrap over seeds within tasks, {agg['reps']} "
                  f"replications, 95% percentile intervals (rliable's IQM and probability of "
                  f"improvement)."), "",

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import jax
 import numpy as np
 
 from cmat.config import TrainConfig
+from cmat.envs.matrix import MatrixGame
 from cmat.runners.trainer import Trainer
 
 
@@ -22,6 +25,6 @@ def train_and_count_optimum(config: TrainConfig) -> tuple[int, np.ndarray]:
     trainer = Trainer(config)
     state, _ = trainer.train_chunk(trainer.init())
     joint = greedy_joint_actions(trainer, state.params)
-    payoff = np.asarray(trainer.setup.env.payoff)
+    payoff = np.asarray(cast(MatrixGame, trainer.setup.env).payoff)
     optimal = payoff[joint[:, 0], joint[:, 1]] == payoff.max()
     return int(np.sum(optimal)), joint

@@ -33,6 +33,7 @@ skipped without being tried.
 
 from __future__ import annotations
 
+import contextlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -202,7 +203,9 @@ def variant(
     if finetune is not None and finetune not in FINETUNE_MODES:
         raise CmatError(f"{where}: finetune must be one of {', '.join(FINETUNE_MODES)}, "
                         f"got {finetune!r}")
-    variant_algos = algo_list(settings["algos"], f"{where}: algos") if "algos" in settings else algos
+    variant_algos = (
+        algo_list(settings["algos"], f"{where}: algos") if "algos" in settings else algos
+    )
     if finetune is not None and any(
         finetune not in algorithm_class(algo).finetune_stages for algo in variant_algos
     ):
@@ -273,7 +276,7 @@ def overrides(value: Any, where: str) -> tuple[str, ...]:
     raise CmatError(f"{where} must be a mapping or a list of key=value strings")
 
 
-def flatten(mapping: dict, prefix: str = "") -> list[tuple[str, Any]]:
+def flatten(mapping: dict[Any, Any], prefix: str = "") -> list[tuple[str, Any]]:
     items: list[tuple[str, Any]] = []
     for key, value in mapping.items():
         name = f"{prefix}{key}"
@@ -284,13 +287,13 @@ def flatten(mapping: dict, prefix: str = "") -> list[tuple[str, Any]]:
     return items
 
 
-def check_keys(mapping: dict, allowed: tuple[str, ...], where: str) -> None:
+def check_keys(mapping: dict[Any, Any], allowed: tuple[str, ...], where: str) -> None:
     unknown = sorted(str(key) for key in mapping if key not in allowed)
     if unknown:
         raise CmatError(f"{where}: unknown key {unknown[0]!r}; allowed: {', '.join(allowed)}")
 
 
-def listed(value: Any, where: str) -> list:
+def listed(value: Any, where: str) -> list[Any]:
     if not isinstance(value, list) or not value:
         raise CmatError(f"{where} must be a non-empty list")
     return value
@@ -310,10 +313,8 @@ def algo_list(value: Any, where: str) -> tuple[str, ...]:
 def integer(value: Any, where: str) -> int:
     """An integer, also written as 1e7 (which YAML reads as text) or 1.0e+7."""
     if isinstance(value, str):
-        try:
+        with contextlib.suppress(ValueError):
             value = float(value)
-        except ValueError:
-            pass
     if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
         raise CmatError(f"{where} must be an integer, got {value!r}")
     return int(value)

@@ -21,7 +21,8 @@ from cmat.experiments.spec import ExperimentSpec
 def iqm(scores: np.ndarray) -> np.ndarray:
     """Interquartile mean over the last two axes (runs × tasks); rliable's aggregate_iqm."""
     flat = scores.reshape(*scores.shape[:-2], -1)
-    return stats.trim_mean(flat, proportiontocut=0.25, axis=-1)
+    mean: np.ndarray = stats.trim_mean(flat, proportiontocut=0.25, axis=-1)
+    return mean
 
 
 def improvement_probability(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -29,7 +30,8 @@ def improvement_probability(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     y [..., runs_y, tasks]; rliable's probability_of_improvement (Mann-Whitney U / (n_x n_y))."""
     greater = (x[..., :, None, :] > y[..., None, :, :]).mean(axis=(-3, -2))
     ties = (x[..., :, None, :] == y[..., None, :, :]).mean(axis=(-3, -2))
-    return (greater + 0.5 * ties).mean(axis=-1)
+    probability: np.ndarray = (greater + 0.5 * ties).mean(axis=-1)
+    return probability
 
 
 def bootstrap(scores: np.ndarray, reps: int, rng: np.random.Generator) -> np.ndarray:

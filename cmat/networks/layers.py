@@ -109,7 +109,8 @@ class EncoderBlock(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         x = nn.LayerNorm()(x + MultiHeadAttention(self.n_embd, self.n_head, self.gain)(x, x))
-        return nn.LayerNorm()(x + FeedForward(self.n_embd, self.gain)(x))
+        out: jax.Array = nn.LayerNorm()(x + FeedForward(self.n_embd, self.gain)(x))
+        return out
 
 
 class ObservationEncoder(nn.Module):
@@ -192,4 +193,5 @@ class DecoderBlock(nn.Module):
         """Full causal pass over tokens [..., L, d]; equals iterating `step` (used in tests)."""
         x = self.norms[0](tokens + self.self_attention(tokens, tokens, causal=True))
         x = self.norms[1](x + self.cross_attention(x, memory))
-        return self.norms[2](x + self.feed_forward(x))
+        out: jax.Array = self.norms[2](x + self.feed_forward(x))
+        return out

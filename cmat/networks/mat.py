@@ -90,7 +90,8 @@ class MATDecodeBlock(nn.Module):
         """All positions at once (causal masks); equals iterating `step`."""
         x = self.norms[0](tokens + self.token_attention(tokens, tokens, causal=True))
         y = self.norms[1](agents + self.agent_attention(agents, x, causal=True))
-        return self.norms[2](y + self.feed_forward(y))
+        out: jax.Array = self.norms[2](y + self.feed_forward(y))
+        return out
 
 
 class AgentValueHead(nn.Module):
@@ -152,7 +153,8 @@ class MATNetwork(nn.Module):
     def embed(self, actions: jax.Array) -> jax.Array:
         """Decoder tokens of previous actions: one-hot over A+1 slots, or the raw vector."""
         features = jax.nn.one_hot(actions + 1, self.action_dim + 1) if self.discrete else actions
-        return self.token_norm(nn.gelu(self.action_embedding(features)))
+        tokens: jax.Array = self.token_norm(nn.gelu(self.action_embedding(features)))
+        return tokens
 
     def policy_params(
         self, features: jax.Array, action_mask: jax.Array

@@ -71,7 +71,8 @@ def finetune_start(trainer: Trainer, source_trainer: Trainer, data: bytes) -> Tr
     for `trainer`'s masked optimizer."""
     source = source_trainer.from_bytes(data)
     fresh = trainer.init()
-    return fresh.replace(
+    return dataclasses.replace(
+        fresh,
         params=source.params,
         target_params=source.target_params,
         value_norm=source.value_norm,

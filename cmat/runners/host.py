@@ -15,6 +15,7 @@ resumed run starts fresh episodes (the ones running at the checkpoint are droppe
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -29,7 +30,7 @@ from cmat.algorithms.base import ActResult, Params
 from cmat.config import TrainConfig
 from cmat.envs.host import default_workers, make_host_env
 from cmat.envs.host.pool import COUNTERS, InProcessPool, WorkerPool, make_pool
-from cmat.envs.host.protocol import HostTimeStep
+from cmat.envs.host.protocol import HostBatch
 from cmat.envs.protocol import EnvSpec, TimeStep
 from cmat.runners.trainer import (
     TrainerState,
@@ -130,7 +131,7 @@ class HostTrainer:
         self._pool: InProcessPool | WorkerPool | None = None
         self._eval_pool: InProcessPool | WorkerPool | None = None
         self._eval_size = 0
-        self._timestep: HostTimeStep | None = None
+        self._timestep: HostBatch | None = None
         self._episode_return = np.zeros((config.seeds, config.num_envs), np.float32)
 
     # ----------------------------------------------------------------------------- environments
@@ -145,7 +146,7 @@ class HostTrainer:
         return make_pool(config.env, config.env_kwargs, seeds, self.workers, spare,
                          config.host_crash_limit, config.host_nonfinite)
 
-    def _start_episodes(self) -> HostTimeStep:
+    def _start_episodes(self) -> HostBatch:
         """Build the training pool if needed and start an episode in every environment."""
         if self._pool is None:
             self._pool = self._new_pool(self._seeds(0, self.config.num_envs))
@@ -158,7 +159,7 @@ class HostTrainer:
         seeds = self.config.seeds
         return batch.reshape(seeds, batch.shape[0] // seeds, *batch.shape[1:])
 
-    def _state_timestep(self, timestep: HostTimeStep) -> TimeStep:
+    def _state_timestep(self, timestep: HostBatch) -> TimeStep:
         return TimeStep(*(jnp.asarray(self._per_seed(np.asarray(x))) for x in timestep))
 
     def close(self) -> None:
@@ -197,7 +198,8 @@ class HostTrainer:
             self._init(key, obs[k], mask[k], alive[k], global_state[k])
             for k, key in enumerate(self.seed_keys())
         ]
-        return jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
+        stacked: TrainerState = jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
+        return stacked
 
     def collect(self, state: TrainerState) -> tuple[TrainerState, Transition]:
         """`rollout_length` steps of every environment with the state's parameters; the state
@@ -221,24 +223,26 @@ class HostTrainer:
                           np.where(done, running, 0.0).astype(np.float32), alive, global_state))
             running = np.where(done, 0.0, running).astype(np.float32)
         self._timestep, self._episode_return = timestep, running
-        obs, mask, acted, reward, done, won, finished, alive, global_state = zip(*steps)
-        acted = jax.tree.map(lambda *x: jnp.stack(x), *acted)
+        (obs_t, mask_t, acted_t, reward_t, done_t, won_t, finished_t, alive_t,
+         global_state_t) = zip(*steps)
+        acted = jax.tree.map(lambda *x: jnp.stack(x), *acted_t)
         rollout = Transition(
-            obs=jnp.asarray(np.stack(obs)),
-            action_mask=jnp.asarray(np.stack(mask)),
+            obs=jnp.asarray(np.stack(obs_t)),
+            action_mask=jnp.asarray(np.stack(mask_t)),
             actions=acted.actions,
             log_probs=acted.log_probs,
             value=acted.value,
-            reward=jnp.asarray(np.stack(reward)),
-            done=jnp.asarray(np.stack(done)),
-            won=jnp.asarray(np.stack(won)),
-            finished_return=jnp.asarray(np.stack(finished)),
-            alive=jnp.asarray(np.stack(alive)),
-            global_state=jnp.asarray(np.stack(global_state)),
+            reward=jnp.asarray(np.stack(reward_t)),
+            done=jnp.asarray(np.stack(done_t)),
+            won=jnp.asarray(np.stack(won_t)),
+            finished_return=jnp.asarray(np.stack(finished_t)),
+            alive=jnp.asarray(np.stack(alive_t)),
+            global_state=jnp.asarray(np.stack(global_state_t)),
             extras=acted.extras,
         )
-        state = state.replace(
-            timestep=self._state_timestep(timestep), episode_return=jnp.asarray(running), rng=rng
+        state = dataclasses.replace(
+            state, timestep=self._state_timestep(timestep), episode_return=jnp.asarray(running),
+            rng=rng,
         )
         return state, rollout
 

@@ -181,8 +181,10 @@ def seed_rows(kind: str, metrics: Mapping[str, np.ndarray], base_seed: int) -> l
     """One CSV row per seed from per-seed metric arrays."""
     seeds = len(metrics["env_steps"])
     return [
-        {"kind": kind, "seed": base_seed + index, "env_steps": int(metrics["env_steps"][index])}
-        | {key: float(values[index]) for key, values in metrics.items() if key != "env_steps"}
+        {
+            "kind": kind, "seed": base_seed + index, "env_steps": int(metrics["env_steps"][index]),
+            **{key: float(values[index]) for key, values in metrics.items() if key != "env_steps"},
+        }
         for index in range(seeds)
     ]
 

@@ -8,6 +8,7 @@ gives the whole run as one pure function, PureJaxRL style.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -163,7 +164,8 @@ def collect_rollout(setup: TrainSetup, state: TrainerState) -> tuple[TrainerStat
             global_state=observed.global_state,
             extras=acted.extras,
         )
-        state = state.replace(
+        state = dataclasses.replace(
+            state,
             env_state=env_state,
             timestep=timestep,
             episode_return=jnp.where(timestep.done, 0.0, running),
@@ -173,7 +175,7 @@ def collect_rollout(setup: TrainSetup, state: TrainerState) -> tuple[TrainerStat
     rng, rollout_key = jax.random.split(state.rng)
     step_keys = jax.random.split(rollout_key, setup.config.rollout_length)
     state, rollout = jax.lax.scan(env_step, state, step_keys)
-    return state.replace(rng=rng), rollout
+    return dataclasses.replace(state, rng=rng), rollout
 
 
 def critic_values(
@@ -189,7 +191,9 @@ def critic_values(
     return values.reshape(*lead, *values.shape[1:])
 
 
-def value_to_returns_space(setup: TrainSetup, norm: ppo_lib.ValueNormState, v: jax.Array) -> jax.Array:
+def value_to_returns_space(
+    setup: TrainSetup, norm: ppo_lib.ValueNormState, v: jax.Array
+) -> jax.Array:
     return ppo_lib.value_norm_denormalize(norm, v) if setup.config.ppo.value_norm else v
 
 
@@ -256,7 +260,9 @@ def optimise(
     )
 
 
-def update_step(setup: TrainSetup, state: TrainerState) -> tuple[TrainerState, dict[str, jax.Array]]:
+def update_step(
+    setup: TrainSetup, state: TrainerState
+) -> tuple[TrainerState, dict[str, jax.Array]]:
     """One PPO update of one seed: collect, estimate, optimise, soft-update the target critic."""
     state, rollout = collect_rollout(setup, state)
     return learn(setup, state, rollout)
@@ -283,8 +289,9 @@ def learn(
     setup: TrainSetup, state: TrainerState, rollout: Transition
 ) -> tuple[TrainerState, dict[str, jax.Array]]:
     """Everything of an update after collection: GAE from the target critic (bootstrapped from
-    `state.timestep`, the observation after the rollout), the algorithm's `update`, the target critic's soft update and the rollout's episode sums. The host runner
-    calls it on rollouts it collected outside the program."""
+    `state.timestep`, the observation after the rollout), the algorithm's `update`, the target
+    critic's soft update and the rollout's episode sums. The host runner calls it on rollouts it
+    collected outside the program."""
     value_norm, batch = make_batch(setup, state, rollout)
     rng, update_key = jax.random.split(state.rng)
     params, opt_state, metrics = optimise(setup, state.params, state.opt_state, batch, update_key)
@@ -298,8 +305,8 @@ def learn(
         "win_sum": jnp.sum(rollout.won & rollout.done),
         "nonfinite": nonfinite_code(metrics, params),
     }
-    state = state.replace(
-        params=params, target_params=target_params, opt_state=opt_state,
+    state = dataclasses.replace(
+        state, params=params, target_params=target_params, opt_state=opt_state,
         value_norm=value_norm, rng=rng, update_step=state.update_step + 1,
     )
     return state, {**metrics, **rollout_metrics}
@@ -324,7 +331,9 @@ def run_updates(
     return state, summarise_updates(setup, per_update)
 
 
-def summarise_updates(setup: TrainSetup, per_update: dict[str, jax.Array]) -> dict[str, jax.Array]:
+def summarise_updates(
+    setup: TrainSetup, per_update: dict[str, jax.Array]
+) -> dict[str, jax.Array]:
     """Metrics of updates stacked on a leading axis: losses averaged over the updates performed
     (`performed`, all where absent), episode sums pooled into the mean return and win rate of
     the episodes that ended in the span (NaN where none did). `nonfinite_update` is the index of
@@ -337,11 +346,13 @@ def summarise_updates(setup: TrainSetup, per_update: dict[str, jax.Array]) -> di
     return_sum = jnp.sum(per_update.pop("return_sum"))
     win_sum = jnp.sum(per_update.pop("win_sum"))
     weights = performed.astype(jnp.float32)
-    metrics = jax.tree.map(
+    metrics: dict[str, jax.Array] = jax.tree.map(
         lambda x: jnp.sum(jnp.where(performed, x, 0.0)) / jnp.maximum(jnp.sum(weights), 1.0),
         per_update,
     )
-    metrics["episode_return"] = jnp.where(episodes > 0, return_sum / jnp.maximum(episodes, 1), jnp.nan)
+    metrics["episode_return"] = jnp.where(
+        episodes > 0, return_sum / jnp.maximum(episodes, 1), jnp.nan
+    )
     win_rate = jnp.where(episodes > 0, win_sum / jnp.maximum(episodes, 1), jnp.nan)
     metrics["win_rate"] = win_rate if setup.spec.has_win_rate else jnp.full_like(win_rate, jnp.nan)
     bad = performed & (codes > 0)
@@ -360,7 +371,9 @@ def evaluate_greedy(
     env_state, timestep = jax.vmap(setup.env.reset)(jax.random.split(reset_key, episodes))
     greedy = jax.vmap(setup.algorithm.greedy, in_axes=(None, 0, 0))
 
-    def step(carry: tuple, key: jax.Array) -> tuple[tuple, None]:
+    Carry = tuple[Any, TimeStep, jax.Array, jax.Array, jax.Array]
+
+    def step(carry: Carry, key: jax.Array) -> tuple[Carry, None]:
         env_state, timestep, returns, won, finished = carry
         actions = env_actions(spec, greedy(params, timestep.obs, timestep.action_mask))
         env_state, timestep = jax.vmap(setup.env.step)(
@@ -382,7 +395,9 @@ def evaluate_greedy(
     }
 
 
-def make_train(config: TrainConfig) -> Callable[[jax.Array], tuple[TrainerState, dict]]:
+def make_train(
+    config: TrainConfig,
+) -> Callable[[jax.Array], tuple[TrainerState, dict[str, jax.Array]]]:
     """The whole run of one seed as one pure function of its key; `jax.jit` it.
 
     To train several seeds in one program, use `Trainer`: it vmaps the updates over seeds but
@@ -429,7 +444,8 @@ class Trainer:
     def init(self) -> TrainerState:
         """Fresh state for every seed, initialised seed by seed (see `make_train`)."""
         states = [self._init(key) for key in self.seed_keys()]
-        return jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
+        stacked: TrainerState = jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
+        return stacked
 
     def train_chunk(
         self, state: TrainerState, updates: int | None = None
@@ -490,4 +506,5 @@ def restore_state(template: TrainerState, seeds: int, data: bytes) -> TrainerSta
     found = jax.tree.map(lambda x: (np.shape(x), np.asarray(x).dtype), restored)
     if expected != found:
         raise CmatError("checkpoint does not match this run's config (shapes differ)")
-    return jax.tree.map(jnp.asarray, restored)
+    state: TrainerState = jax.tree.map(jnp.asarray, restored)
+    return state

@@ -15,7 +15,7 @@ from __future__ import annotations
 from typing import Any
 
 from cmat.envs import HOST_PREFIXES
-from cmat.envs.host.protocol import HostAgentIdWrapper, HostEnv, HostTimeStep
+from cmat.envs.host.protocol import AutoReset, HostAgentIdWrapper, HostEnv, HostTimeStep
 from cmat.errors import CmatError
 
 __all__ = [
@@ -45,7 +45,7 @@ def make_host_env(
     `nonfinite` ("error" or "warn", `TrainConfig.host_nonfinite`) says what a NaN or infinite
     observation, reward or state does (`cmat.envs.host.protocol.AutoReset`)."""
     prefix, _, name = env_id.partition(":")
-    env: HostEnv
+    env: AutoReset
     if prefix == "pettingzoo":
         from cmat.envs.host.pettingzoo_env import make_pettingzoo_env
 

@@ -5,7 +5,8 @@ CONF is one of gymnasium-robotics' built-in factorizations of SCENARIO (`HalfChe
 agent, built here from `get_parts_and_edges`: the paper's `Ant-8x1` and `Walker2d-6x1`), or NxM
 for the ManySegment scenarios. The env is a PettingZoo ParallelEnv, so the PettingZoo adapter
 does the rest: observations (different sizes per agent) zero-padded to the largest, actions
-mapped from [-1, 1] onto each joint's Box bounds (±0.4 for HalfCheetah), the shared reward as the team reward, 1000-step episodes, no win rate.
+mapped from [-1, 1] onto each joint's Box bounds (±0.4 for HalfCheetah), the shared reward as
+the team reward, 1000-step episodes, no win rate.
 Keyword arguments go to `mamujoco_v1.parallel_env` (e.g. `agent_obsk`).
 """
 

@@ -68,7 +68,8 @@ def load_factory(env_id: str, target: str) -> Callable[..., Any]:
         factory = getattr(factory, part)
     if not callable(factory):
         raise CmatError(f"{env_id}: {attribute!r} is not callable")
-    return factory
+    found: Callable[..., Any] = factory
+    return found
 
 
 def make_pettingzoo_env(env_id: str, target: str, **kwargs: Any) -> PettingZooEnv:
@@ -222,7 +223,10 @@ class PettingZooEnv(AutoReset):
 
     def _mapping(self, value: Any, name: str) -> dict[str, Any]:
         if not isinstance(value, dict):
-            raise CmatError(f"{self.spec.env_id}: {name} {self.at_step} must be a dict keyed by agent, got {type(value).__name__}")
+            raise CmatError(
+                f"{self.spec.env_id}: {name} {self.at_step} must be a dict keyed by agent, "
+                f"got {type(value).__name__}"
+            )
         return value
 
     def _live_agents(self, obs: dict[str, Any], terminations: dict[str, Any],

@@ -16,6 +16,8 @@ the restarts so far and the non-finite values replaced by 0 (`host_nonfinite=war
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -26,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from cmat.envs.host import make_host_env
-from cmat.envs.host.protocol import HostEnv, HostTimeStep, SimulatorCrash
+from cmat.envs.host.protocol import HostBatch, HostEnv, HostStep, HostTimeStep, SimulatorCrash
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 
@@ -40,7 +42,7 @@ COUNTERS = ("env_restarts", "env_nonfinite")
 """Per-slot counters of `counters()` (metrics.csv columns of host runs)."""
 
 
-def stack(timesteps: list[HostTimeStep]) -> HostTimeStep:
+def stack(timesteps: list[HostStep]) -> HostBatch:
     """Per-environment timesteps as one batch with a leading environment axis."""
     return HostTimeStep(
         obs=np.stack([t.obs for t in timesteps]).astype(np.float32, copy=False),
@@ -53,7 +55,7 @@ def stack(timesteps: list[HostTimeStep]) -> HostTimeStep:
     )
 
 
-def concatenate(batches: list[HostTimeStep]) -> HostTimeStep:
+def concatenate(batches: list[HostBatch]) -> HostBatch:
     """Batches of several pools as one, in order."""
     return HostTimeStep(*(np.concatenate(fields) for fields in zip(*batches)))
 
@@ -81,7 +83,7 @@ class InProcessPool:
         return make_host_env(self.env_id, seed=self._seeds[index], nonfinite=self.nonfinite,
                              **self.env_kwargs)
 
-    def reset(self, seeds: list[int] | None = None) -> HostTimeStep:
+    def reset(self, seeds: list[int] | None = None) -> HostBatch:
         """Start an episode in every environment, environment i with `seeds[i]` (default: the
         pool's seeds); one whose simulator crashes is restarted (module doc)."""
         self._seeds = list(seeds) if seeds is not None else self._seeds
@@ -93,7 +95,7 @@ class InProcessPool:
                 timesteps.append(self._restart(index, str(crash)))
         return stack(timesteps)
 
-    def step(self, actions: np.ndarray) -> HostTimeStep:
+    def step(self, actions: np.ndarray) -> HostBatch:
         """Step environment i with `actions[i]`; one whose simulator crashes is restarted
         (module doc)."""
         timesteps = []
@@ -111,7 +113,7 @@ class InProcessPool:
         return {"env_restarts": self._restarts.copy(),
                 "env_nonfinite": self._replaced_before + np.asarray(replaced, np.int64)}
 
-    def _restart(self, index: int, reason: str) -> HostTimeStep:
+    def _restart(self, index: int, reason: str) -> HostStep:
         """Rebuild and reset environment `index` until it starts, or `crash_limit` crashes in a
         row (CmatError)."""
         while True:
@@ -125,10 +127,8 @@ class InProcessPool:
             log.warning("%s: environment %d crashed (%s); restarted it, its episode counts as "
                         "truncated", self.env_id, index, reason)
             self._replaced_before[index] += self.envs[index].nonfinite_replaced
-            try:
+            with contextlib.suppress(Exception):  # a broken simulator may fail to close too
                 self.envs[index].close()
-            except Exception:  # a broken simulator may fail to close too
-                pass
             self.envs[index] = self._make(index)
             seed = self._seeds[index] + RESTART_SEED_STRIDE * int(self._restarts[index])
             try:
@@ -144,10 +144,8 @@ class InProcessPool:
     def close(self) -> None:
         """Close every environment."""
         for env in self.envs:
-            try:
+            with contextlib.suppress(Exception):
                 env.close()
-            except Exception:
-                pass
         self.envs = []
 
 
@@ -174,7 +172,7 @@ def worker_main(conn: multiprocessing.connection.Connection, env_id: str,
             break
         try:
             batch = pool.step(data) if command == "step" else pool.reset(data)
-            reply: tuple = ("ok", batch, pool.counters())
+            reply: tuple[Any, ...] = ("ok", batch, pool.counters())
         except CmatError as error:
             reply = ("error", str(error))
         except Exception:
@@ -213,10 +211,8 @@ class Worker:
 
     def stop(self) -> None:
         """Ask the worker to close; kill it if it does not."""
-        try:
+        with contextlib.suppress(OSError, ValueError):
             self.conn.send(("close", None))
-        except (OSError, ValueError):
-            pass
         self.process.join(timeout=5)
         if self.process.is_alive():
             self.process.kill()
@@ -237,7 +233,7 @@ class WorkerPool:
         self._seeds = list(seeds)
         count = len(seeds)
         bounds = np.linspace(0, count, min(workers, count) + 1).round().astype(int)
-        slots = [slice(int(a), int(b)) for a, b in zip(bounds, bounds[1:])]
+        slots = [slice(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
         self.workers = [self._worker(s, self._seeds[s]) for s in slots]
         self._restarts = 0
         self._lost = {name: np.zeros(count, np.int64) for name in COUNTERS}
@@ -247,13 +243,13 @@ class WorkerPool:
     def _worker(self, slots: slice, seeds: list[int]) -> Worker:
         return Worker(self.env_id, self.env_kwargs, slots, seeds, self.crash_limit, self.nonfinite)
 
-    def reset(self, seeds: list[int] | None = None) -> HostTimeStep:
+    def reset(self, seeds: list[int] | None = None) -> HostBatch:
         """Start an episode in every environment, environment i with `seeds[i]` (default: the
         pool's seeds)."""
         self._seeds = list(seeds) if seeds is not None else self._seeds
         return self._all("reset", lambda w: self._seeds[w.slots])
 
-    def step(self, actions: np.ndarray) -> HostTimeStep:
+    def step(self, actions: np.ndarray) -> HostBatch:
         """Step environment i with `actions[i]`; a dead worker is replaced (module doc)."""
         return self._all("step", lambda w: actions[w.slots])
 
@@ -263,7 +259,7 @@ class WorkerPool:
         return {name: self._lost[name] + np.concatenate([w.counters[name] for w in self.workers])
                 for name in COUNTERS}
 
-    def _all(self, command: str, data: Any) -> HostTimeStep:
+    def _all(self, command: str, data: Any) -> HostBatch:
         sent = []
         for worker in self.workers:
             try:
@@ -289,7 +285,7 @@ class WorkerPool:
             worker.counters = reply[2]
         return concatenate(results)
 
-    def _restart(self, index: int) -> tuple:
+    def _restart(self, index: int) -> tuple[Any, ...]:
         """A fresh worker in place of dead worker `index`, its environments reset: the reply of
         the command it did not answer, with every episode done."""
         old = self.workers[index]
@@ -309,10 +305,10 @@ class WorkerPool:
         worker = self._worker(old.slots, seeds)
         self.workers[index] = worker
         worker.conn.send(("reset", seeds))
-        reply = worker.conn.recv()
+        reply: tuple[Any, ...] = worker.conn.recv()
         if reply[0] != "ok":
             return reply
-        batch: HostTimeStep = reply[1]
+        batch: HostBatch = reply[1]
         return ("ok", batch._replace(
             reward=np.zeros_like(batch.reward), done=np.ones_like(batch.done),
             won=np.zeros_like(batch.won),

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import NamedTuple, Protocol
+from typing import Any, Generic, NamedTuple, Protocol, TypeVar, overload
 
 import numpy as np
 
@@ -38,18 +38,23 @@ def simulator_call(env_id: str, what: str) -> Iterator[None]:
         raise SimulatorCrash(f"{env_id}: {what} raised {type(error).__name__}: {error}") from error
 
 
-class HostTimeStep(NamedTuple):
-    """`cmat.envs.protocol.TimeStep` as numpy arrays of one environment."""
+_Reward = TypeVar("_Reward")
+_Flag = TypeVar("_Flag")
+
+
+class HostTimeStep(NamedTuple, Generic[_Reward, _Flag]):
+    """`cmat.envs.protocol.TimeStep` as numpy arrays of one environment (`HostStep`); the pools
+    give batches of them, every field with a leading environment axis (`HostBatch`)."""
 
     obs: np.ndarray
     """[n_agents, obs_dim] float32 (per-agent observations zero-padded to the largest)."""
     action_mask: np.ndarray
     """[n_agents, action_dim] bool; True = available. All True for continuous actions."""
-    reward: float
+    reward: _Reward
     """Team reward of the transition just taken (0 after reset)."""
-    done: bool
+    done: _Flag
     """The transition just taken ended the episode (terminal, time limit or a fault)."""
-    won: bool
+    won: _Flag
     """The episode that just ended was won (False where undefined or not done)."""
     alive: np.ndarray
     """[n_agents] bool: agents active in `obs` (False: left the episode, or not in it yet)."""
@@ -57,18 +62,30 @@ class HostTimeStep(NamedTuple):
     """[state_dim] float32 global state; shape [0] (host environments provide none yet)."""
 
 
+HostStep = HostTimeStep[float, bool]
+"""One environment's timestep."""
+HostBatch = HostTimeStep[np.ndarray, np.ndarray]
+"""A pool's timestep: every field [E, ...] with a leading environment axis."""
+
+
 class HostEnv(Protocol):
     """One host simulator behind the protocol; `step` resets automatically."""
 
     spec: EnvSpec
-    nonfinite: str
-    """"error" or "warn" (`NONFINITE_POLICIES`)."""
-    nonfinite_replaced: int
-    """Non-finite values replaced by 0 so far (`nonfinite` "warn")."""
 
-    def reset(self, seed: int | None = None) -> HostTimeStep: ...
+    @property
+    def nonfinite(self) -> str:
+        """"error" or "warn" (`NONFINITE_POLICIES`)."""
+        ...
 
-    def step(self, actions: np.ndarray) -> HostTimeStep:
+    @property
+    def nonfinite_replaced(self) -> int:
+        """Non-finite values replaced by 0 so far (`nonfinite` "warn")."""
+        ...
+
+    def reset(self, seed: int | None = None) -> HostStep: ...
+
+    def step(self, actions: np.ndarray) -> HostStep:
         """`actions`: [n_agents] ints, or [n_agents, action_dim] floats in the range of
         `spec.action_low/high` (the PettingZoo adapter maps [-1, 1] onto each agent's Box)."""
         ...
@@ -90,31 +107,41 @@ class AutoReset:
     episode_step: int = 0
     """Transitions taken in the current episode (0 at its reset)."""
 
-    def reset(self, seed: int | None = None) -> HostTimeStep:
+    def reset(self, seed: int | None = None) -> HostStep:
         """Start an episode (seeded where `seed` is given)."""
         self.episode_step = 0
         obs, mask = self._reset(seed)
         return self._checked(obs, mask, 0.0, False, False)
 
-    def step(self, actions: np.ndarray) -> HostTimeStep:
+    def step(self, actions: np.ndarray) -> HostStep:
         """Step; when the episode ends, the next one starts and its first observation returns."""
         self.episode_step += 1
         obs, mask, reward, done, won = self._step(actions)
-        reward = self._finite(np.float32(reward), "reward", None)
+        finite_reward = self._finite(np.float32(reward), "reward", None)
         if done:
             self.episode_step = 0
             obs, mask = self._reset(None)
-        return self._checked(obs, mask, float(reward), bool(done), bool(won and done))
+        return self._checked(obs, mask, float(finite_reward), bool(done), bool(won and done))
 
     def _checked(self, obs: np.ndarray, mask: np.ndarray, reward: float, done: bool,
-                 won: bool) -> HostTimeStep:
+                 won: bool) -> HostStep:
         if not np.isfinite(obs).all():
             for index in range(obs.shape[0]):
                 obs[index] = self._finite(obs[index], "observation", index)
         state = self._finite(self._global_state(), "global state", None)
         return HostTimeStep(obs, mask, reward, done, won, self._active(), state)
 
-    def _finite(self, values: np.ndarray, what: str, agent: int | None) -> np.ndarray:
+    @overload
+    def _finite(self, values: np.ndarray, what: str, agent: int | None) -> np.ndarray: ...
+
+    @overload
+    def _finite(
+        self, values: np.floating[Any], what: str, agent: int | None
+    ) -> np.floating[Any] | np.ndarray: ...
+
+    def _finite(
+        self, values: np.ndarray | np.floating[Any], what: str, agent: int | None
+    ) -> np.ndarray | np.floating[Any]:
         """`values`, or a CmatError / zeros in place of NaN and infinities (`nonfinite`)."""
         bad = ~np.isfinite(values)
         if not bad.any():
@@ -171,11 +198,11 @@ class HostAgentIdWrapper:
     def nonfinite_replaced(self) -> int:
         return self.env.nonfinite_replaced
 
-    def reset(self, seed: int | None = None) -> HostTimeStep:
+    def reset(self, seed: int | None = None) -> HostStep:
         """Start an episode."""
         return self._with_id(self.env.reset(seed))
 
-    def step(self, actions: np.ndarray) -> HostTimeStep:
+    def step(self, actions: np.ndarray) -> HostStep:
         """Step the wrapped environment."""
         return self._with_id(self.env.step(actions))
 
@@ -183,5 +210,5 @@ class HostAgentIdWrapper:
         """Close the wrapped environment."""
         self.env.close()
 
-    def _with_id(self, timestep: HostTimeStep) -> HostTimeStep:
+    def _with_id(self, timestep: HostStep) -> HostStep:
         return timestep._replace(obs=np.concatenate([timestep.obs, self._ids], axis=-1))
