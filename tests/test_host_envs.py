@@ -8,6 +8,7 @@ worker processes (spawned) import this module to build them.
 from __future__ import annotations
 
 import csv
+import ctypes.util
 import importlib.util
 import json
 import logging
@@ -428,6 +429,16 @@ def test_halfcheetah_6x1_through_the_cli(tmp_path: Path, capsys: pytest.CaptureF
     assert float(rows[1]["episode_return"]) == pytest.approx(
         json.loads(capsys.readouterr().out)["per_seed"][0]["episode_return"], rel=1e-5)
     assert not Path("MUJOCO_LOG.TXT").exists()
+    if ctypes.util.find_library("OSMesa") is not None:  # headless MuJoCo drawing
+        from PIL import Image
+
+        gif = tmp_path / "cheetah.gif"
+        assert main(["render", "--run", str(out), "--max-steps", "6", "--out", str(gif)]) == 0
+        with Image.open(gif) as frames:
+            assert frames.n_frames == 6
+            frames.seek(5)
+            picture = np.asarray(frames.convert("RGB"))
+        assert picture.std() > 10  # a scene, not a blank frame
 
 
 @needs_mujoco

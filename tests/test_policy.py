@@ -3,7 +3,6 @@ and the README's PettingZoo loop reaches the optimum of a game the run learned."
 
 from __future__ import annotations
 
-import ctypes.util
 import re
 from pathlib import Path
 
@@ -194,21 +193,3 @@ def test_render_requests_it_cannot_serve_are_one_error(
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and message in error[0], error
     assert not (tmp_path / "a.gif").exists()
-
-
-@pytest.mark.skipif(ctypes.util.find_library("OSMesa") is None,
-                    reason="MuJoCo draws headless through OSMesa: bash scripts/install_render.sh")
-def test_render_draws_mamujoco_headless(tmp_path: Path) -> None:
-    pytest.importorskip("gymnasium_robotics")
-    from PIL import Image
-
-    run, out = tmp_path / "cheetah", tmp_path / "cheetah.gif"
-    assert main(["train", "--env", "mamujoco:HalfCheetah-6x1", "--steps", "200", "--out",
-                 str(run), "--set", "num_envs=2", "ppo.num_minibatches=1", "eval_episodes=1",
-                 "ppo.epochs=1"]) == 0
-    assert main(["render", "--run", str(run), "--max-steps", "6", "--out", str(out)]) == 0
-    with Image.open(out) as gif:
-        assert gif.n_frames == 6
-        gif.seek(5)
-        picture = np.asarray(gif.convert("RGB"))
-    assert picture.std() > 10  # a scene, not a blank frame
