@@ -63,7 +63,7 @@ def test_train_writes_a_complete_run_directory(trained: Path) -> None:
     assert RunDir.open(trained).config() == expected
     sources = RunDir.open(trained).sources()
     assert sources["env"] == sources["ppo.epochs"] == sources["total_steps"] == "command line"
-    assert sources["ppo.lr"] == "default" and sources["ppo.target_tau"] == "default"
+    assert sources["ppo.lr"] == "default" and sources["ppo.target_tau"] == "algorithm cmat"
 
     written = rows(trained)
     chunks = range(CHUNK_STEPS, 2000 + 1, CHUNK_STEPS)

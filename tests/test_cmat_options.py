@@ -167,11 +167,17 @@ def test_the_paper_preset_takes_mats_column_of_the_suite() -> None:
     assert (football.rollout_length, football.ppo.epochs, football.num_envs) == (200, 10, 8)
 
 
-def test_the_tuned_preset_changes_only_the_clip_and_the_target_critic() -> None:
-    tuned, default = load_config(overrides=["preset=tuned"]), load_config()
-    assert (tuned.ppo.joint_clip, tuned.ppo.target_tau) == ("per_agent", 1.0)
-    assert dataclasses.replace(tuned.ppo, joint_clip="joint", target_tau=0.1) == default.ppo
-    assert dataclasses.replace(tuned, ppo=default.ppo, preset=None) == default
+def test_cmats_default_is_the_tuned_setting_and_differs_from_the_papers_clip_and_tau() -> None:
+    default, tuned = load_config(), load_config(overrides=["preset=tuned"])
+    assert (default.ppo.joint_clip, default.ppo.target_tau) == ("per_agent", 1.0)
+    assert dataclasses.replace(tuned, preset=None) == default
+    paper_clip_and_tau = load_config(overrides=["ppo.joint_clip=joint", "ppo.target_tau=0.1"])
+    assert dataclasses.replace(default.ppo, joint_clip="joint", target_tau=0.1) == (
+        paper_clip_and_tau.ppo
+    )
+    assert dataclasses.replace(default, ppo=paper_clip_and_tau.ppo) == paper_clip_and_tau
+    triple_bert = load_config(overrides=["algo=triple_bert"]).ppo
+    assert (triple_bert.joint_clip, triple_bert.target_tau) == ("joint", 0.1)
     with pytest.raises(CmatError, match="unknown preset 'tuned' for mat; available: paper"):
         load_config(overrides=["preset=tuned", "algo=mat"])
 

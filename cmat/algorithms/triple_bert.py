@@ -9,7 +9,7 @@ only the network differs (cmat.networks.triple_bert).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from cmat.algorithms.cmat import CMAT
 from cmat.algorithms.sgd import PPOAlgorithm
@@ -23,6 +23,9 @@ class TripleBERT(CMAT):
     network: TripleBERTNetwork  # type: ignore[assignment]
 
     name: ClassVar[str] = "triple_bert"
+    reference_defaults: ClassVar[dict[str, Any]] = {}
+    """The paper's baseline setting: the reference MAT's (the dataclass defaults), trained as
+    the paper trains CMAT (joint ratio clipped to [1 − ε, 1 + ε], target critic τ = 0.1)."""
     finetune_stages: ClassVar[tuple[str, ...]] = ()
     capabilities: ClassVar[frozenset[str]] = frozenset({"joint_ratio"})
     finetune_labels = PPOAlgorithm.finetune_labels
