@@ -1,0 +1,63 @@
+"""Training steps/s of two checkouts of cmat, measured in alternation (A B A B ...).
+
+    python benchmarks/ab_throughput.py --before ../cmat-old --after . --algo cmat --algo mappo
+    python benchmarks/ab_throughput.py --before OLD --after NEW --env smax:3m --pairs 3 \
+        --set ppo.joint_clip=joint ppo.target_tau=0.1
+
+Each measurement is one `benchmarks/throughput.py --single` process of that checkout (its own
+code on `PYTHONPATH`): one algorithm's training chunk timed after compilation. Alternating the
+two checkouts pair by pair keeps the ratio meaningful on a shared machine whose speed drifts;
+the table gives each checkout's median steps/s and the median and range of the per-pair ratios
+after / before. A refactor that costs nothing shows ratios around 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def steps_per_second(tree: Path, env: str, algo: str, updates: int, overrides: list[str]) -> float:
+    """One `--single` measurement of checkout `tree`."""
+    script = tree / "benchmarks" / "throughput.py"
+    command = [sys.executable, str(script), "--single", "--env", env, "--algo", algo,
+               "--updates", str(updates), "--set", *overrides]
+    environment = {**os.environ, "PYTHONPATH": str(tree)}
+    done = subprocess.run(command, check=False, capture_output=True, text=True, env=environment)
+    if done.returncode != 0:
+        reason = (done.stderr.strip().splitlines() or ["failed"])[-1]
+        raise SystemExit(f"{tree} {algo}: {reason}")
+    return float(json.loads(done.stdout.strip().splitlines()[-1])["steps_per_second"])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--before", type=Path, required=True, help="checkout A (the baseline)")
+    parser.add_argument("--after", type=Path, required=True, help="checkout B")
+    parser.add_argument("--algo", action="append", help="algorithm (repeatable; default cmat)")
+    parser.add_argument("--env", default="smax:3m")
+    parser.add_argument("--pairs", type=int, default=3, help="alternating pairs per algorithm")
+    parser.add_argument("--updates", type=int, default=1, help="updates per timed chunk")
+    parser.add_argument("--set", nargs="*", default=[], help="config overrides for both")
+    args = parser.parse_args()
+    print(f"Training steps/s on {args.env}, {args.pairs} alternating pairs, overrides: "
+          f"{' '.join(args.set) or '-'}")
+    print(f"{'algo':<12} {'before':>9} {'after':>9} {'after/before median [range]':>30}")
+    for algo in args.algo or ["cmat"]:
+        before, after = [], []
+        for _ in range(args.pairs):
+            before.append(steps_per_second(args.before, args.env, algo, args.updates, args.set))
+            after.append(steps_per_second(args.after, args.env, algo, args.updates, args.set))
+        ratios = np.array(after) / np.array(before)
+        print(f"{algo:<12} {np.median(before):>9.0f} {np.median(after):>9.0f} "
+              f"{np.median(ratios):>14.3f} [{ratios.min():.3f}, {ratios.max():.3f}]", flush=True)
+
+
+if __name__ == "__main__":
+    main()
