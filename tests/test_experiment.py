@@ -65,7 +65,8 @@ def group_alive(group: int) -> bool:
 @pytest.fixture(scope="module")
 def grid(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, str]:
     """The smoke grid killed (SIGKILL to the experiment process alone) once its first run is
-    complete and its second half done, then run again to the end."""
+    complete and its second half done, then run again to the end. The process group is stopped
+    around the kill, so a run cannot finish in the moment between the check and the kill."""
     out = tmp_path_factory.mktemp("experiment") / "smoke"
     log = out.parent / "killed.log"
     with log.open("w") as file:
@@ -79,8 +80,10 @@ def grid(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, str]:
             assert process.poll() is None, log.read_text()
             assert time.monotonic() < deadline, log.read_text()
             time.sleep(0.1)
+        os.killpg(process.pid, signal.SIGSTOP)  # no run step between seeing 500 and the kill
         os.kill(process.pid, signal.SIGKILL)
         process.wait()
+        os.killpg(process.pid, signal.SIGCONT)  # the runs wake to their parent's death
         deadline = time.monotonic() + 30
         while group_alive(process.pid) and time.monotonic() < deadline:
             time.sleep(0.2)

@@ -25,7 +25,7 @@ ALGORITHM_CLASSES = (
     "cmat.algorithms.happo:HAPPO",
     "cmat.algorithms.mappo:MAPPO",
 )
-"""Where each algorithm's class lives, in the order `cmat train --help` lists them."""
+"""Where each algorithm's class lives, in the order `cmat config` and error messages list them."""
 
 OPTION_CAPABILITIES = {
     "network.consensus_policy": ("consensus", "deterministic"),
@@ -35,12 +35,6 @@ OPTION_CAPABILITIES = {
 }
 """Options only some algorithms have: field -> (the capability it needs, the value every
 algorithm accepts)."""
-
-CAPABILITY_NAMES = {
-    "consensus": "a consensus",
-    "joint_ratio": "the joint ratio",
-    "per_agent_values": "per-agent values",
-}
 
 
 @functools.cache
@@ -104,7 +98,8 @@ def check_config(config: TrainConfig) -> TrainConfig:
         if value != neutral and capability not in cls.capabilities:
             able = [n for n, other in registry().items() if capability in other.capabilities]
             raise CmatError(
-                f"invalid config: {field}={value} needs {CAPABILITY_NAMES[capability]} "
-                f"({', '.join(able)}); algo {config.algo!r} has none"
+                f"invalid config: {field}={value} applies to the "
+                f"{capability.replace('_', '-')} algorithms ({', '.join(able)}), not to "
+                f"{config.algo!r}"
             )
     return config
