@@ -102,6 +102,14 @@ def test_resumed_finetuning_keeps_its_mask(
                    for b, a in zip(leaves(before[name]), leaves(after[name])))
 
 
+def as_algorithm(config: dict, algo: str) -> dict:
+    """A CMAT run's config.yaml contents made another algorithm's: `algo` set and CMAT's
+    per-agent clip (its default, an option other algorithms reject) back to the plain clip."""
+    if algo == "cmat":
+        return config
+    return {**config, "algo": algo, "ppo": {**config["ppo"], "joint_clip": "joint"}}
+
+
 @pytest.mark.parametrize(
     ("edit", "args", "message"),
     [
@@ -117,7 +125,8 @@ def test_bad_finetuning_is_one_error_line(
 ) -> None:
     source = Path(shutil.copytree(base, tmp_path / "source"))
     config = yaml.safe_load((source / "config.yaml").read_text())
-    (source / "config.yaml").write_text(yaml.safe_dump({**config, **edit}))
+    edited = {**config, **edit}
+    (source / "config.yaml").write_text(yaml.safe_dump(as_algorithm(edited, edited["algo"])))
     out = tmp_path / "out"
     assert main(["finetune", "--from", str(source), "--mode", "action", "--out", str(out),
                  *args]) == 2
@@ -199,6 +208,6 @@ def test_eval_iterations_is_cmat_only(
 ) -> None:
     source = Path(shutil.copytree(base, tmp_path / "mat"))
     config = yaml.safe_load((source / "config.yaml").read_text())
-    (source / "config.yaml").write_text(yaml.safe_dump({**config, "algo": "mat"}))
+    (source / "config.yaml").write_text(yaml.safe_dump(as_algorithm(config, "mat")))
     assert main(["eval", "--run", str(source), "--iterations", "1"]) == 2
     assert "--iterations applies to cmat runs only" in one_error_line(capsys.readouterr().err)

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from cmat.algorithms import reference_defaults
 from cmat.cli import main
 from cmat.config import field_names, from_yaml, layer_fields, read_sources, to_yaml
 from cmat.envs.suites import SUITES
@@ -47,7 +48,9 @@ def test_a_suites_settings_resolve_with_their_source(suite: str) -> None:
     for name, setting in expected.items():
         assert value(config, name) == setting, name
         assert sources[name] == f"suite {suite}", name
-    untouched = set(field_names()) - set(expected) - {"env"}
+    algorithm = set(flat(reference_defaults("cmat"))) - set(expected)
+    assert {sources[name] for name in algorithm} <= {"algorithm cmat"}
+    untouched = set(field_names()) - set(expected) - algorithm - {"env"}
     assert {sources[name] for name in untouched} == {"default"}
 
 
