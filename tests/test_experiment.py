@@ -314,11 +314,34 @@ def test_unreadable_specs_and_options_are_one_error_line(
 
 
 @pytest.mark.parametrize("name", ["paper_main.yaml", "paper_ablation.yaml", "smoke.yaml",
-                                  "cmat_speed_study.yaml", "cmat_speed_study_long.yaml"])
+                                  "cmat_speed_study.yaml", "cmat_speed_study_long.yaml",
+                                  "cmat_speed_study_3s5z_long.yaml"])
 def test_shipped_specs_plan(name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["experiment", str(REPO / "experiments" / name), "--out", str(tmp_path / "x"),
                  "--dry-run"]) == 0
     assert "runs in" in capsys.readouterr().out
+
+
+def test_specs_name_cmats_paper_setting_or_its_default(tmp_path: Path) -> None:
+    """paper_main runs the paper's CMAT (`preset: paper`); the speed study's CMAT lines name
+    their clip and tau, so they keep their meaning whatever CMAT's default is."""
+    from cmat.experiments.plan import make_plan
+
+    paper = make_plan(load_spec(REPO / "experiments" / "paper_main.yaml"), tmp_path / "a")
+    cmat_runs = [run.config for run in paper.runs if run.algo == "cmat" and run.config]
+    assert cmat_runs and all(
+        (c.preset, c.ppo.joint_clip, c.ppo.target_tau, c.num_envs) == ("paper", "joint", 0.1, 8)
+        for c in cmat_runs
+    )
+    study = make_plan(load_spec(REPO / "experiments" / "cmat_speed_study.yaml"), tmp_path / "b")
+    lines = {run.variant.name: (run.config.ppo.joint_clip, run.config.ppo.target_tau)
+             for run in study.runs if run.algo == "cmat" and run.config}
+    assert lines == {
+        "per_agent_clip_tau_one": ("per_agent", 1.0), "paper_clip_and_tau": ("joint", 0.1),
+        "per_agent_clip": ("per_agent", 0.1), "tau_one": ("joint", 1.0),
+    }
+    default = load_config(overrides=["env=smax:6h_vs_8z"]).ppo
+    assert (default.joint_clip, default.target_tau) == lines["per_agent_clip_tau_one"]
 
 
 def test_a_variant_restricted_to_some_envs_plans_and_aggregates_only_there(
