@@ -1,7 +1,7 @@
 """Benchmark suites: the environment-id prefixes cmat knows and each suite's default settings.
 
 A suite's settings are the config layer between the dataclass defaults and the algorithm's
-reference defaults (`cmat.config.load_config`): the reference MAT hyper-parameters of that
+reference defaults (`cmat.resolve.resolve_config`): the reference MAT hyper-parameters of that
 benchmark family (shared/reference/README.md, from MAT's train scripts) and the budget a user
 of the suite expects. `cmat train --env mamujoco:HalfCheetah-6x1` therefore trains with MAT's
 MA-MuJoCo settings without a `--set`; the run's config.yaml names the suite as the source of

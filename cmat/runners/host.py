@@ -3,8 +3,8 @@
 Only the rollout loop differs from the in-graph trainer. Each step is one jitted call of the
 algorithm's `act`, vmapped over every environment of every seed, then one `step` of the host
 pool (`cmat.envs.host.pool`, in-process or in worker processes). The rollout, stacked to
-[T, seeds, envs, ...], goes through the in-graph trainer's own `learn` (target-critic GAE, PPO
-or the algorithm's `optimise` hook, target soft update), jitted and vmapped over seeds; metrics
+[T, seeds, envs, ...], goes through the in-graph trainer's own `learn` (target-critic GAE, the
+algorithm's `update`, target soft update), jitted and vmapped over seeds; metrics
 are pooled by its `summarise_updates`. Greedy evaluation runs on a second pool, so training
 episodes are not cut by it.
 
