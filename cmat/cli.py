@@ -54,8 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--preset", metavar="NAME",
         help="a named setting of the algorithm, applied before --config and --set: 'paper' is "
-             "the paper's exact settings; for cmat, 'tuned' is the learning-speed study's best "
-             "configuration (default: the algorithm's own defaults)",
+             "the paper's exact settings; for cmat, 'tuned' names its default, the "
+             "learning-speed study's configuration (default: the algorithm's own defaults)",
     )
     train.add_argument(
         "--set", action="extend", nargs="+", default=[], metavar="KEY=VALUE",

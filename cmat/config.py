@@ -193,8 +193,8 @@ class TrainConfig:
     preset: str | None = None
     """A named set of values the algorithm declares (its class's `presets`), applied over its
     reference defaults and under `--config` / `--set`: 'paper' is the paper's exact settings
-    (`cmat train --preset paper`); CMAT's 'tuned' is the learning-speed study's best
-    configuration (README). None: the algorithm's defaults."""
+    (`cmat train --preset paper`); CMAT's 'tuned' names its default, the learning-speed
+    study's configuration (README). None: the algorithm's defaults."""
     network: NetworkConfig = field(default_factory=NetworkConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
 
