@@ -21,6 +21,7 @@ from rliable import metrics as rliable_metrics
 
 from cmat.cli import main
 from cmat.errors import CmatError
+from cmat.experiments.claims import CLAIMS, NO_DATA
 from cmat.experiments.lines import Line
 from cmat.experiments.runner import run_experiment
 from cmat.experiments.spec import load_spec
@@ -125,6 +126,12 @@ def test_grid_writes_figures_table_and_statistics(grid: tuple[Path, bytes, str])
     assert "| Fig. 1 matrix game | CMAT | 2 | mixture |" in table
     assert "| CMAT > MAT |" in table and "IQM [95% CI]" in table
     assert (out / "spec.yaml").read_text() == SMOKE.read_text()
+    claims = {c["key"]: c for c in json.loads((out / "results.json").read_text())["claims"]}
+    game = claims["e"]
+    assert [c["tasks"] for c in game["comparisons"]] == [["matrix:fig1"]]
+    assert game["verdict"] != NO_DATA
+    assert f"| (e) {CLAIMS['e']} | {game['verdict']} | CMAT vs MAT: " in table
+    assert claims["a"]["verdict"] == NO_DATA  # no task besides the matrix game
 
 
 def test_the_marl_eval_json_loads_in_marl_eval_with_the_numbers_of_results_json(

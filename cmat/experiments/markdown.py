@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from cmat.experiments.claims import NO_DATA, SEPARATION, coverage
 from cmat.experiments.lines import METRIC_NAMES
 from cmat.experiments.plan import Plan
 
@@ -62,6 +63,7 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
         for pair, value in agg["improvement"].items():
             out.append(f"| {pair} | {value['probability']:.3f} "
                        f"[{value['ci'][0]:.3f}, {value['ci'][1]:.3f}] |")
+    out += claims_section(summary)
     published = [(task, ref) for task in summary["tasks"] for ref in task["published"]]
     out += ["", "## Published reference figures (context, not this project's runs)", ""]
     if published:
@@ -96,3 +98,52 @@ def cell(line: dict[str, Any] | None, seeds: int) -> str:
         return "—"
     n = len(line["finals"])
     return f"{line['mean']:.3g} ± {line['std']:.2g}" + ("" if n == seeds else f" (n={n})")
+
+
+def claims_section(summary: dict[str, Any]) -> list[str]:
+    """The claims table (one row per claim) and the per-task comparisons behind it."""
+    claims = summary.get("claims") or []
+    if not claims:
+        return []
+    labels = {task["env"]: task["label"] for task in summary["tasks"]}
+    out = ["", "## The paper's claims", "",
+           (f"Each claim is judged from this grid's final scores by cmat.experiments.claims: "
+            f"P(X > Y) is rliable's probability of improvement with a stratified bootstrap 95% "
+            f"interval, per task and aggregated over the tasks both lines ran (returns min-max "
+            f"normalised per task). A comparison is decided when its interval excludes "
+            f"{SEPARATION}. Supported: X reliably better in every per-task comparison the claim "
+            f"needs (for (d): no other m reliably better anywhere, and m = n reliably better "
+            f"than some other m somewhere). Not supported: the other line reliably better in "
+            f"some comparison. Not separable at this budget: otherwise. Fine-tuning stages ran "
+            f"their own steps after their base run. Tasks with `matrix:` ids are claim (e)'s."),
+           "", "| claim | verdict | evidence: X vs Y, aggregate P(X > Y) [95% CI], IQM of X and "
+               "Y (normalised scores), tasks where X / Y was reliably better / neither |",
+           "|---|---|---|"]
+    for claim in claims:
+        evidence = "; ".join(
+            f"{c['x']} vs {c['y']}: {c['probability']:.2f} [{c['ci'][0]:.2f}, {c['ci'][1]:.2f}]"
+            f", IQM {c['iqm_x']:.2f} vs {c['iqm_y']:.2f}, "
+            f"{tally(c)} of {len(c['tasks'])} task(s)"
+            for c in claim["comparisons"]) or "the grid has no complete runs of these lines"
+        out.append(f"| ({claim['key']}) {claim['statement']} | "
+                   f"{claim['verdict']}{coverage(claim)} | {evidence} |")
+    rows = [(claim, c, t) for claim in claims for c in claim["comparisons"]
+            for t in c["per_task"]]
+    if rows:
+        out += ["", "| claim | X | Y | task | P(X > Y) [95% CI] | reliably better |",
+                "|---|---|---|---|---|---|"]
+        decided = {"x": "X", "y": "Y", "tie": "neither"}
+        for claim, c, t in rows:
+            task = labels.get(t["task"], t["task"])
+            out.append(f"| ({claim['key']}) | {c['x']} | {c['y']} | {task}"
+                       f" | {t['probability']:.2f} [{t['ci'][0]:.2f}, {t['ci'][1]:.2f}] | "
+                       f"{decided[t['outcome']]} |")
+    if all(claim["verdict"] == NO_DATA for claim in claims):
+        out += ["", "No claim has data yet: the grid has no complete runs of the lines they "
+                    "compare."]
+    return out
+
+
+def tally(comparison: dict[str, Any]) -> str:
+    counts = [sum(t["outcome"] == o for t in comparison["per_task"]) for o in ("x", "y", "tie")]
+    return " / ".join(str(n) for n in counts)

@@ -6,7 +6,8 @@
 - `figure_ablation.png` (paper Fig. 4), when the spec has variants of figure `ablation`.
 - `results.md`: final greedy metrics (mean ± std over seeds), the ablation table with each
   run's resolved m, aggregate statistics with bootstrap confidence intervals, the published
-  figures, and what happened to every run; `results.json`: the same numbers;
+  figures, the paper's claims judged from the grid (cmat.experiments.claims), and what
+  happened to every run; `results.json`: the same numbers;
   `marl_eval.json`: every evaluation of every run in marl-eval's format.
 """
 
@@ -18,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from cmat.experiments.claims import judge_claims
 from cmat.experiments.figures import draw
 from cmat.experiments.lines import (
     Line,
@@ -83,7 +85,7 @@ def summarise(
             }
         entry["published"] = matching_references(references, env.id, metric)
         tasks.append(entry)
-    return {
+    summary: dict[str, Any] = {
         "name": plan.spec.name,
         "seeds": plan.spec.seeds,
         "tasks": tasks,
@@ -91,3 +93,5 @@ def summarise(
         "runs": [{"run": run.name, "status": run.found, "note": run.note,
                   "outcome": run.outcome} for run in plan.runs],
     }
+    summary["claims"] = judge_claims(summary, plan.spec)
+    return summary

@@ -1,0 +1,222 @@
+"""The paper's claims judged from an experiment's final scores: a verdict per claim, computed.
+
+The claims (paper, Introduction and Experiments):
+
+- (a) CMAT beats MAT, PMAT, Triple-BERT, HAPPO and MAPPO on every task;
+- (b) the fine-tuned variants are best;
+- (c) the consensus from the mixture of e0..em beats the one from the last vector e_m;
+- (d) m = n decoder iterations is a robust default;
+- (e) CMAT avoids MAT's Pareto-suboptimal equilibrium on the Fig. 1 game.
+
+Which lines a claim compares is read from the grid, not named here. The reference CMAT line is
+the `default` variant's CMAT. (a): every CMAT line of the main figure that is not a fine-tuning
+stage (the default and, e.g., the paper preset) against every other algorithm's main line.
+(b): each fine-tuning stage's line against every other main line on the tasks it ran. (c): the
+reference against each CMAT line whose consensus comes from e_m and whose m equals the
+reference's. (d): the reference (m = n) against each CMAT line with another m and the
+reference's consensus source. (e): CMAT against MAT on the matrix games (`matrix:` ids);
+(a)-(d) use the other tasks.
+
+Evidence for "X beats Y": rliable's probability of improvement P(X > Y) with a stratified
+bootstrap 95% percentile interval, on each task (seeds resampled) and aggregated over the tasks
+both lines ran (scores normalised as in `cmat.experiments.statistics.normalise`), beside the IQM
+of each line over those tasks. A comparison is decided when its interval excludes 0.5: X
+reliably better when the lower bound is above 0.5, Y reliably better when the upper bound is
+below it. Verdicts, from the per-task comparisons:
+
+- "supported": X is reliably better in every comparison the claim needs (for (d): no other m
+  is reliably better on any task, and m = n is reliably better than some other m on some task);
+- "not supported": some comparison finds Y reliably better (for (d): some other m);
+- "not separable at this budget": neither (at least one interval contains 0.5);
+- "no data": no task on which the claim's lines both have final scores.
+
+A verdict reached on fewer tasks than the claim covers in the spec says on how many.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from cmat.experiments.spec import ExperimentSpec
+from cmat.experiments.statistics import bootstrap, improvement_probability, interval, iqm, normalise
+
+SEPARATION = 0.5
+"""P(X > Y) of two indistinguishable lines; a decided comparison's interval excludes it."""
+
+SUPPORTED, NOT_SUPPORTED, NOT_SEPARABLE, NO_DATA = (
+    "supported", "not supported", "not separable at this budget", "no data")
+
+CLAIMS = {
+    "a": "CMAT beats MAT, PMAT, Triple-BERT, HAPPO and MAPPO on every task",
+    "b": "the fine-tuned variants are best",
+    "c": "the mixture consensus beats the last consensus vector",
+    "d": "m = n is a robust default",
+    "e": "CMAT avoids MAT's Pareto-suboptimal equilibrium on the Fig. 1 game",
+}
+
+
+@dataclass(frozen=True)
+class TaskComparison:
+    task: str
+    probability: float
+    ci: list[float]
+    outcome: str
+    """'x' (X reliably better), 'y' (Y reliably better) or 'tie' (interval contains 0.5)."""
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """X against Y on the tasks where both have final scores."""
+
+    x: str
+    y: str
+    tasks: list[str]
+    probability: float
+    ci: list[float]
+    iqm_x: float
+    iqm_x_ci: list[float]
+    iqm_y: float
+    iqm_y_ci: list[float]
+    per_task: list[TaskComparison]
+
+    def count(self, outcome: str) -> int:
+        return sum(t.outcome == outcome for t in self.per_task)
+
+
+@dataclass
+class Claim:
+    key: str
+    statement: str
+    comparisons: list[Comparison] = field(default_factory=list)
+    tasks_in_spec: int = 0
+    verdict: str = NO_DATA
+
+
+def outcome(ci: list[float]) -> str:
+    if ci[0] > SEPARATION:
+        return "x"
+    if ci[1] < SEPARATION:
+        return "y"
+    return "tie"
+
+
+def compare(x: str, y: str, scores: dict[str, dict[str, list[float]]], reps: int) -> (
+        Comparison | None):
+    """P(x > y) per task and aggregated over the tasks of `scores` (task -> label ->
+    normalised finals) where both have finals; None where there is no such task."""
+    tasks = [t for t, lines in scores.items() if lines.get(x) and lines.get(y)]
+    if not tasks:
+        return None
+    rng = np.random.default_rng(0)
+    per_task = []
+    for task in tasks:
+        xs, ys = (np.array(scores[task][label])[:, None] for label in (x, y))
+        point = float(improvement_probability(xs, ys))
+        ci = interval(improvement_probability(bootstrap(xs, reps, rng), bootstrap(ys, reps, rng)))
+        per_task.append(TaskComparison(task, point, ci, outcome(ci)))
+    runs = {label: min(len(scores[t][label]) for t in tasks) for label in (x, y)}
+    matrix = {label: np.array([[scores[t][label][i] for t in tasks] for i in range(runs[label])])
+              for label in (x, y)}
+    samples = {label: bootstrap(m, reps, rng) for label, m in matrix.items()}
+    return Comparison(
+        x, y, tasks,
+        float(improvement_probability(matrix[x], matrix[y])),
+        interval(improvement_probability(samples[x], samples[y])),
+        float(iqm(matrix[x])), interval(iqm(samples[x])),
+        float(iqm(matrix[y])), interval(iqm(samples[y])),
+        per_task,
+    )
+
+
+def verdict(comparisons: list[Comparison], robust_default: bool = False) -> str:
+    """The verdict of a claim from its comparisons' per-task outcomes (module docstring)."""
+    outcomes = [t.outcome for c in comparisons for t in c.per_task]
+    if not outcomes:
+        return NO_DATA
+    if "y" in outcomes:
+        return NOT_SUPPORTED
+    if robust_default:
+        return SUPPORTED if "x" in outcomes else NOT_SEPARABLE
+    return SUPPORTED if all(o == "x" for o in outcomes) else NOT_SEPARABLE
+
+
+def judge_claims(summary: dict[str, Any], spec: ExperimentSpec) -> list[dict[str, Any]]:
+    """The claims (a)-(e) judged from `summary` (`cmat.experiments.report.summarise`): per claim
+    its statement, comparisons, the number of the spec's tasks it covers and its verdict."""
+    finals: dict[str, dict[str, list[float]]] = {}
+    lines: dict[str, dict[str, Any]] = {}
+    for task in summary["tasks"]:
+        if "unavailable" in task:
+            continue
+        task_finals = {label: line["finals"] for label, line in task["lines"].items()
+                       if line["finals"]}
+        finals[task["env"]] = normalise(task_finals, task["metric"]) if task_finals else {}
+        for label, line in task["lines"].items():
+            lines.setdefault(label, line)
+    game = {t: s for t, s in finals.items() if t.startswith("matrix:")}
+    benchmark = {t: s for t, s in finals.items() if not t.startswith("matrix:")}
+    spec_tasks = [e.id for e in spec.envs if e.unavailable is None]
+    reps = spec.bootstrap_reps
+
+    def variant_of(label: str) -> Any:
+        return spec.variant(lines[label]["variant"])
+
+    def stage(label: str) -> bool:
+        return variant_of(label).finetune is not None
+
+    def main(label: str) -> bool:
+        return "main" in lines[label]["figures"]
+
+    reference = next((label for label, line in lines.items()
+                      if line["variant"] == "default" and line["algo"] == "cmat"), None)
+    cmat_lines = [label for label, line in lines.items()
+                  if line["algo"] == "cmat" and main(label) and not stage(label)]
+    baselines = [label for label, line in lines.items() if line["algo"] != "cmat" and main(label)]
+    stages = [label for label in lines if stage(label)]
+    ref_line = lines.get(reference) if reference else None
+
+    def pairs(x: str, ys: list[str], scores: dict[str, dict[str, list[float]]]) -> (
+            list[Comparison]):
+        return [c for y in ys if (c := compare(x, y, scores, reps)) is not None]
+
+    def covered(variant_names: set[str], in_game: bool) -> int:
+        return sum(1 for t in spec_tasks if t.startswith("matrix:") == in_game
+                   and all(spec.variant(v).covers(t) for v in variant_names))
+
+    claims: list[Claim] = []
+    for label in cmat_lines:
+        claim = Claim("a", f"{CLAIMS['a']} ({label})", pairs(label, baselines, benchmark),
+                      covered({lines[label]["variant"]}, False))
+        claims.append(claim)
+    for label in stages:
+        others = [o for o in lines if o != label and main(o) and not stage(o)]
+        claims.append(Claim("b", f"{CLAIMS['b']} ({label})", pairs(label, others, benchmark),
+                            covered({lines[label]["variant"]}, False)))
+    if ref_line is not None and reference is not None:
+        last = [label for label, line in lines.items() if line["algo"] == "cmat"
+                and line["consensus_source"] == "last" and not stage(label)
+                and line["iterations"] == ref_line["iterations"]]
+        other_m = [label for label, line in lines.items() if line["algo"] == "cmat"
+                   and line["consensus_source"] == ref_line["consensus_source"]
+                   and not stage(label) and line["iterations"] != ref_line["iterations"]]
+        claims.append(Claim("c", CLAIMS["c"], pairs(reference, last, benchmark),
+                            covered({lines[o]["variant"] for o in last}, False)))
+        claims.append(Claim("d", CLAIMS["d"], pairs(reference, other_m, benchmark),
+                            covered({lines[o]["variant"] for o in other_m}, False)))
+        mat = [label for label, line in lines.items()
+               if line["algo"] == "mat" and line["variant"] == "default"]
+        claims.append(Claim("e", CLAIMS["e"], pairs(reference, mat, game), covered(set(), True)))
+    for claim in claims:
+        claim.verdict = verdict(claim.comparisons, robust_default=claim.key == "d")
+    return [asdict(claim) for claim in claims]
+
+
+def coverage(claim: dict[str, Any]) -> str:
+    """' (on k of K tasks)' when the claim's comparisons cover fewer tasks than the spec has."""
+    tasks = {t for c in claim["comparisons"] for t in c["tasks"]}
+    if claim["verdict"] == NO_DATA or len(tasks) >= claim["tasks_in_spec"]:
+        return ""
+    return f" (on {len(tasks)} of {claim['tasks_in_spec']} tasks)"

@@ -1,0 +1,162 @@
+"""The claims section: verdicts computed from final scores, never written in."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from cmat.experiments.claims import (
+    NO_DATA,
+    NOT_SEPARABLE,
+    NOT_SUPPORTED,
+    SUPPORTED,
+    compare,
+    coverage,
+    judge_claims,
+)
+from cmat.experiments.markdown import claims_section
+from cmat.experiments.spec import ExperimentSpec, load_spec
+
+TASKS = ("matrix:fig1", "smax:3m", "smax:2s3z")
+STRONG, WEAK, MIDDLE = [0.9, 0.95, 1.0], [0.1, 0.2, 0.3], [0.5, 0.6, 0.55]
+
+
+@pytest.fixture
+def spec(tmp_path: Path) -> ExperimentSpec:
+    path = tmp_path / "claims.yaml"
+    path.write_text(yaml.safe_dump({
+        "steps": 100, "envs": list(TASKS), "algos": ["cmat", "mat", "mappo"],
+        "variants": {
+            "default": {"figure": ["main", "ablation"]},
+            "paper": {"algos": ["cmat"], "set": {"preset": "paper"}, "label": "CMAT paper"},
+            "finetune_action": {"algos": ["cmat"], "from": "default", "finetune": "action",
+                                "envs": ["smax:3m", "smax:2s3z"], "label": "CMAT-ft"},
+            "last": {"algos": ["cmat"], "figure": "ablation", "label": "last",
+                     "envs": ["smax:3m", "smax:2s3z"],
+                     "set": {"network": {"consensus_source": "last"}}},
+            "m_half": {"algos": ["cmat"], "figure": "ablation", "label": "m = n/2",
+                       "envs": ["smax:3m", "smax:2s3z"],
+                       "set": {"network": {"consensus_iterations": "n/2"}}},
+        },
+    }))
+    return load_spec(path)
+
+
+LINES = {  # label: (variant, algo, figures, consensus source, m)
+    "CMAT": ("default", "cmat", ["main", "ablation"], "mixture", 3),
+    "MAT": ("default", "mat", ["main", "ablation"], None, None),
+    "MAPPO": ("default", "mappo", ["main", "ablation"], None, None),
+    "CMAT paper": ("paper", "cmat", ["main"], "mixture", 3),
+    "CMAT-ft": ("finetune_action", "cmat", ["main"], "mixture", 3),
+    "last": ("last", "cmat", ["ablation"], "last", 3),
+    "m = n/2": ("m_half", "cmat", ["ablation"], "mixture", 1),
+}
+
+
+def summary(finals: dict[str, dict[str, list[float]]]) -> dict[str, Any]:
+    """A summary as `summarise` writes it: finals per task and line label."""
+    tasks = []
+    for task in TASKS:
+        lines = {}
+        for label, scores in finals.get(task, {}).items():
+            variant, algo, figures, source, m = LINES[label]
+            lines[label] = {"variant": variant, "algo": algo, "figures": figures,
+                            "finals": scores, "iterations": m, "consensus_source": source}
+        metric = "episode_return" if task.startswith("matrix:") else "win_rate"
+        tasks.append({"env": task, "label": task, "metric": metric, "lines": lines})
+    return {"tasks": tasks}
+
+
+def by_key(claims: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    return {claim["statement"].rsplit("(", 1)[-1].rstrip(")") if claim["key"] in "ab"
+            else claim["key"]: claim for claim in claims}
+
+
+def full_grid(**changes: list[float]) -> dict[str, dict[str, list[float]]]:
+    """CMAT strong, its paper preset and fine-tuning strong, every other line weak."""
+    smax = {"CMAT": STRONG, "MAT": WEAK, "MAPPO": WEAK, "CMAT paper": STRONG,
+            "CMAT-ft": STRONG, "last": WEAK, "m = n/2": WEAK, **changes}
+    game = {"CMAT": [100.0] * 3, "MAT": [100.0] * 3, "MAPPO": [100.0] * 3}
+    return {"matrix:fig1": game, "smax:3m": dict(smax), "smax:2s3z": dict(smax)}
+
+
+def test_verdicts_follow_the_scores(spec: ExperimentSpec) -> None:
+    claims = by_key(judge_claims(summary(full_grid()), spec))
+    assert claims["CMAT"]["verdict"] == SUPPORTED
+    assert claims["CMAT paper"]["verdict"] == SUPPORTED
+    assert claims["c"]["verdict"] == SUPPORTED
+    assert claims["d"]["verdict"] == SUPPORTED
+    assert claims["e"]["verdict"] == NOT_SEPARABLE  # every method at the optimum, P = 0.5
+    # The fine-tuning stage ties CMAT and its paper preset: best is not separable.
+    assert claims["CMAT-ft"]["verdict"] == NOT_SEPARABLE
+
+
+def test_a_baseline_reliably_better_on_one_task_refutes_every_task(
+    spec: ExperimentSpec,
+) -> None:
+    grid = full_grid()
+    grid["smax:2s3z"]["MAPPO"] = MIDDLE
+    grid["smax:2s3z"]["CMAT"] = WEAK
+    claims = by_key(judge_claims(summary(grid), spec))
+    assert claims["CMAT"]["verdict"] == NOT_SUPPORTED
+    mappo = next(c for c in claims["CMAT"]["comparisons"] if c["y"] == "MAPPO")
+    assert [t["outcome"] for t in mappo["per_task"]] == ["x", "y"]
+    assert claims["CMAT paper"]["verdict"] == SUPPORTED
+
+
+def test_overlapping_scores_are_not_separable(spec: ExperimentSpec) -> None:
+    grid = full_grid(MAT=[0.85, 0.95, 1.0], last=[0.9, 0.95, 1.0])
+    claims = by_key(judge_claims(summary(grid), spec))
+    assert claims["CMAT"]["verdict"] == NOT_SEPARABLE
+    assert claims["c"]["verdict"] == NOT_SEPARABLE
+
+
+def test_robust_default_fails_when_another_m_wins_and_is_open_when_all_tie(
+    spec: ExperimentSpec,
+) -> None:
+    assert by_key(judge_claims(summary(full_grid(**{"m = n/2": [1.0] * 3, "CMAT": MIDDLE})),
+                               spec))["d"]["verdict"] == NOT_SUPPORTED
+    assert by_key(judge_claims(summary(full_grid(**{"m = n/2": STRONG})), spec))["d"][
+        "verdict"] == NOT_SEPARABLE
+
+
+def test_claims_without_runs_have_no_data_and_partial_grids_say_how_many_tasks(
+    spec: ExperimentSpec,
+) -> None:
+    grid = full_grid()
+    del grid["smax:2s3z"]
+    for label in ("last", "CMAT-ft"):
+        del grid["smax:3m"][label]
+    claims = by_key(judge_claims(summary(grid), spec))
+    assert claims["c"]["verdict"] == NO_DATA and coverage(claims["c"]) == ""
+    assert claims["CMAT"]["verdict"] == SUPPORTED
+    assert coverage(claims["CMAT"]) == " (on 1 of 2 tasks)"
+    assert "CMAT-ft" not in claims
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_swapping_the_lines_mirrors_the_probability(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    scores = {task: {"X": list(rng.random(3)), "Y": list(rng.random(4))}
+              for task in ("t1", "t2")}
+    forward, backward = compare("X", "Y", scores, 500), compare("Y", "X", scores, 500)
+    assert forward is not None and backward is not None
+    assert forward.probability + backward.probability == pytest.approx(1.0)
+    for f, b in zip(forward.per_task, backward.per_task, strict=True):
+        assert {f.outcome, b.outcome} in ({"x", "y"}, {"tie"})
+    assert forward.ci[0] <= forward.probability <= forward.ci[1]
+
+
+def test_the_claims_table_shows_every_claim_and_its_evidence(spec: ExperimentSpec) -> None:
+    data = summary(full_grid())
+    data["claims"] = judge_claims(data, spec)
+    text = "\n".join(claims_section(data))
+    assert "## The paper's claims" in text
+    for key in "abcde":
+        assert f"| ({key}) " in text
+    assert "CMAT vs MAT: 1.00 [1.00, 1.00]" in text
+    assert "| (c) | CMAT | last | smax:3m | 1.00 [1.00, 1.00] | X |" in text
