@@ -15,6 +15,7 @@ skipped with a message when gfootball is not installed.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import os
 import platform
@@ -83,15 +84,15 @@ def training(env_id: str, envs: int, rollout: int, updates: int, workers: int,
         start = time.perf_counter()
         state = trainer.init()
         state, _ = trainer.train_chunk(state)  # compiles the policy step and the update
-        jax.block_until_ready(state.params)
+        jax.block_until_ready(state.learner.params)
         compile_s = time.perf_counter() - start
         start = time.perf_counter()
-        collected, rollout_batch = trainer.collect(state)
-        jax.block_until_ready(rollout_batch.obs)
+        learner, rollout = trainer.collect(state.learner)
+        jax.block_until_ready(rollout.steps.obs)
         collect_s = time.perf_counter() - start
         start = time.perf_counter()
-        state, _ = trainer.train_chunk(collected)
-        jax.block_until_ready(state.params)
+        state, _ = trainer.train_chunk(dataclasses.replace(state, learner=learner))
+        jax.block_until_ready(state.learner.params)
         train_s = time.perf_counter() - start
     finally:
         trainer.close()

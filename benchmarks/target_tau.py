@@ -14,7 +14,7 @@ import numpy as np
 
 from cmat.experiments.matrix_games import train_and_count_optimum
 from cmat.resolve import load_config
-from cmat.runners.trainer import Trainer
+from cmat.runners.trainer import JaxTrainer
 
 
 def fig1_optimum_count(tau: float, steps: int) -> int:
@@ -30,7 +30,7 @@ def smax_result(tau: float, steps: int, seeds: int) -> dict[str, np.ndarray]:
         "env=smax:3m", f"total_steps={steps}", f"seeds={seeds}", f"ppo.target_tau={tau}",
         f"log_interval={steps // 3200}",
     ])
-    trainer = Trainer(config)
+    trainer = JaxTrainer(config)
     state, _ = trainer.train_chunk(trainer.init())
     return trainer.evaluate(state, 64)
 

@@ -81,32 +81,37 @@ def breakdown(env_id: str, num_envs: int, repeats: int) -> dict[str, float]:
     from cmat.envs.random_policy import random_rollout
     from cmat.resolve import load_config
     from cmat.runners import trainer as trainer_lib
+    from cmat.runners.learner import make_batch
+    from cmat.runners.learner import optimise as optimise_batch
 
     config = load_config(overrides=[f"env={env_id}", f"num_envs={num_envs}"])
     setup = trainer_lib.build_setup(config)
     steps = config.steps_per_update
     state = jax.jit(lambda key: trainer_lib.init_state(setup, key))(jax.random.PRNGKey(0))
 
-    env_only = jax.jit(random_rollout(setup.env, num_envs, config.rollout_length))
-    collect = jax.jit(lambda s: trainer_lib.collect_rollout(setup, s))
-    state, _ = collect(state)
+    env_only = jax.jit(random_rollout(setup.collector.env, num_envs, config.rollout_length))
+    params, key = state.learner.params, state.learner.rng
+    collect = jax.jit(lambda envs: setup.collector.collect(params, envs, key))
+    envs, _ = collect(state.envs)
     jax.block_until_ready(env_only(jax.random.PRNGKey(1)))
     env_only_times, collect_times = [], []
     for _ in range(repeats):
         env_only_times.append(fastest(lambda: env_only(jax.random.PRNGKey(1)), 1))
-        collect_times.append(fastest(lambda: collect(state), 1))
+        collect_times.append(fastest(lambda: collect(envs), 1))
     env_only_s, collect_s = min(env_only_times), min(collect_times)
     pair_ratios = np.array(env_only_times) / np.array(collect_times)
-    state, rollout = collect(state)
+    envs, rollout = collect(envs)
 
-    _, batch = jax.jit(lambda s, r: trainer_lib.make_batch(setup, s, r))(state, rollout)
-    optimise = jax.jit(lambda p, o, b, k: trainer_lib.optimise(setup, p, o, b, k))
+    learner = state.learner
+    _, batch = jax.jit(lambda s, r: make_batch(setup.learner, s, r))(learner, rollout)
+    optimise = jax.jit(lambda p, o, b, k: optimise_batch(setup.learner, p, o, b, k))
     key = jax.random.PRNGKey(2)
-    jax.block_until_ready(optimise(state.params, state.opt_state, batch, key))
-    update_s = fastest(lambda: optimise(state.params, state.opt_state, batch, key), repeats)
+    jax.block_until_ready(optimise(learner.params, learner.opt_state, batch, key))
+    update_s = fastest(lambda: optimise(learner.params, learner.opt_state, batch, key), repeats)
     minibatch = jax.tree.map(lambda x: x[: x.shape[0] // config.ppo.num_minibatches], batch)
-    gradient = jax.jit(jax.grad(lambda p, b: setup.algorithm.loss(p, b, config.ppo)[0]))
-    step_flops = compiled_flops(gradient.lower(state.params, minibatch).compile())
+    algorithm = setup.learner.algorithm
+    gradient = jax.jit(jax.grad(lambda p, b: algorithm.loss(p, b, config.ppo)[0]))
+    step_flops = compiled_flops(gradient.lower(learner.params, minibatch).compile())
     update_flops = step_flops * config.ppo.epochs * config.ppo.num_minibatches
 
     train = jax.jit(lambda s: trainer_lib.update_step(setup, s))
@@ -132,12 +137,12 @@ def measure_training(env: str, algo: str, overrides: list[str], updates: int) ->
     import jax
 
     from cmat.resolve import load_config
-    from cmat.runners.trainer import Trainer
+    from cmat.runners.trainer import JaxTrainer
 
     config = load_config(
         overrides=[f"env={env}", f"algo={algo}", f"log_interval={updates}", *overrides]
     )
-    trainer = Trainer(config)
+    trainer = JaxTrainer(config)
     state = trainer.init()
     start = time.perf_counter()
     state, _ = trainer.train_chunk(state)

@@ -35,7 +35,7 @@ from cmat.rundir import RunDir
 from cmat.runners.loop import run_training
 
 if TYPE_CHECKING:
-    from cmat.runners.trainer import Trainer, TrainerState
+    from cmat.runners.base import Trainer, TrainerState
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -306,9 +306,10 @@ def with_eval_iterations(
         )
     network = dataclasses.replace(config.network, consensus_iterations=iterations)
     eval_trainer = build_trainer(dataclasses.replace(config, network=network))
-    return eval_trainer, dataclasses.replace(
-        state, params=with_iterations(state.params, iterations)
+    learner = dataclasses.replace(
+        state.learner, params=with_iterations(state.learner.params, iterations)
     )
+    return eval_trainer, dataclasses.replace(state, learner=learner)
 
 
 def finetune_command(args: argparse.Namespace) -> None:
@@ -354,12 +355,11 @@ def plot_command(args: argparse.Namespace) -> None:
 
 
 def build_trainer(config: TrainConfig) -> Trainer:
-    """The trainer for `config` (`HostTrainer` for host environments, which has `Trainer`'s
-    interface); JAX is imported here, after the log level is set."""
+    """The trainer for `config` (`HostTrainer` for host environments, `JaxTrainer` for the
+    others); JAX is imported here, after the log level is set."""
     from cmat.runners.host import build_trainer as build
 
-    trainer: Trainer = build(config)
-    return trainer
+    return build(config)
 
 
 def default_out(config: TrainConfig) -> Path:

@@ -99,7 +99,7 @@ class Policy:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _greedy_team(policy: Policy, params: Any, obs: jax.Array, mask: jax.Array) -> jax.Array:
-    from cmat.runners.trainer import env_actions
+    from cmat.runners.collector import env_actions
 
     act = policy.algorithm.greedy
     actions = act(params, obs, mask) if obs.ndim == 2 else jax.vmap(act, (None, 0, 0))(
@@ -111,7 +111,7 @@ def _greedy_team(policy: Policy, params: Any, obs: jax.Array, mask: jax.Array) -
 def _sample_team(
     policy: Policy, params: Any, obs: jax.Array, mask: jax.Array, key: jax.Array
 ) -> jax.Array:
-    from cmat.runners.trainer import env_actions
+    from cmat.runners.collector import env_actions
 
     state = jnp.zeros(policy.spec.state_dim)
 
@@ -152,9 +152,7 @@ def load_policy(run_dir: str | Path, seed: int | None = None) -> Policy:
             raise
         raise CmatError(f"{run.path}: {error}; the run was {origin}, this is cmat "
                         f"{__version__}") from None
-    params = jax.tree.map(lambda leaf: np.asarray(leaf)[index], state.params)
-    close = getattr(trainer, "close", None)
-    if callable(close):
-        close()
-    return Policy(trainer.env_spec, config, seed, env_steps, trainer.setup.algorithm,
+    params = jax.tree.map(lambda leaf: np.asarray(leaf)[index], state.learner.params)
+    trainer.close()
+    return Policy(trainer.env_spec, config, seed, env_steps, trainer.learner_setup.algorithm,
                   jax.tree.map(jnp.asarray, params))

@@ -22,7 +22,8 @@ from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
-from cmat.runners.trainer import Trainer
+from cmat.runners.learner import LearnerSetup
+from cmat.runners.trainer import JaxTrainer
 
 SPEC = EnvSpec("test", 3, 5, 4, True, 10, False)
 NETWORK = NetworkConfig(n_embd=16, n_head=2)
@@ -53,13 +54,13 @@ def quick_compiles() -> Iterator[None]:
 def trained(request: pytest.FixtureRequest) -> tuple:
     """Params before and after two updates in one chunk, and the chunk's metrics."""
     algo, env = request.param
-    trainer = Trainer(load_config(overrides=[
+    trainer = JaxTrainer(load_config(overrides=[
         f"algo={algo}", f"env={env}", "total_steps=160", "log_interval=2", *TINY,
     ]))
     state = trainer.init()
-    before = jax.tree.map(np.asarray, state.params)
+    before = jax.tree.map(np.asarray, state.learner.params)
     state, metrics = trainer.train_chunk(state)
-    return before, state.params, metrics
+    return before, state.learner.params, metrics
 
 
 def test_baseline_trains_through_the_shared_trainer(trained: tuple) -> None:
@@ -99,9 +100,9 @@ def built() -> dict[str, tuple]:
 
 
 @pytest.fixture(scope="module")
-def happo_setup(built: dict[str, tuple]) -> tuple[trainer_lib.TrainSetup, HAPPO, dict, Batch]:
+def happo_setup(built: dict[str, tuple]) -> tuple[LearnerSetup, HAPPO, dict, Batch]:
     """A trainer setup whose algorithm is HAPPO over SPEC, its params and a fixed batch."""
-    setup = trainer_lib.build_setup(load_config(overrides=["algo=happo", *TINY]))
+    setup = trainer_lib.build_setup(load_config(overrides=["algo=happo", *TINY])).learner
     algorithm, params = built["happo"]
     return dataclasses.replace(setup, algorithm=algorithm), algorithm, params, fixed_batch()
 

@@ -18,7 +18,8 @@ from cmat.cli import main
 from cmat.config import validate
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
-from cmat.runners.trainer import Trainer, TrainerState
+from cmat.runners.base import TrainerState
+from cmat.runners.trainer import JaxTrainer
 
 TINY = ["num_envs=4", "rollout_length=25", "log_interval=5", "ppo.epochs=2", "eval_episodes=4"]
 TRAIN = ["train", "--env", "matrix:fig1", "--steps", "2000", "--seeds", "2", "--set", *TINY]
@@ -110,18 +111,18 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
     run_copy: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     original = (run_copy / "metrics.csv").read_bytes()
-    train_chunk = Trainer.train_chunk
+    train_chunk = JaxTrainer.train_chunk
     calls: list[int] = []
 
     def interrupted_second_chunk(
-        self: Trainer, state: TrainerState, updates: int | None = None
+        self: JaxTrainer, state: TrainerState, updates: int | None = None
     ) -> tuple[TrainerState, dict[str, np.ndarray]]:
         calls.append(1)
         if len(calls) == 2:
             raise KeyboardInterrupt
         return train_chunk(self, state, updates)
 
-    monkeypatch.setattr(Trainer, "train_chunk", interrupted_second_chunk)
+    monkeypatch.setattr(JaxTrainer, "train_chunk", interrupted_second_chunk)
     assert main(["train", "--resume", str(run_copy), "--steps", "3000"]) == 130
     monkeypatch.undo()
     assert "--resume" in capsys.readouterr().err

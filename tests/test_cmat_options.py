@@ -17,7 +17,7 @@ from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 from cmat.resolve import load_config
-from cmat.runners import trainer as trainer_lib
+from cmat.runners.learner import make_batch, optimise
 from cmat.runners.trainer import build_setup, init_state
 
 SPEC = EnvSpec("test", 4, 5, 3, True, 10, False)
@@ -102,11 +102,12 @@ def test_kl_early_stop_skips_the_epochs_after_the_target() -> None:
                                         "network.init_gain=1.0", "ppo.lr=0.01", *overrides])
         setup = build_setup(config)
         state = init_state(setup, jax.random.PRNGKey(0))
-        state, rollout = trainer_lib.collect_rollout(setup, state)
-        _, batch = trainer_lib.make_batch(setup, state, rollout)
+        learner = state.learner
+        _, rollout = setup.collector.collect(learner.params, state.envs, learner.rng)
+        _, batch = make_batch(setup.learner, learner, rollout)
         params, _, metrics = jax.jit(
-            lambda p, o, b, k: trainer_lib.optimise(setup, p, o, b, k)
-        )(state.params, state.opt_state, batch, jax.random.PRNGKey(1))
+            lambda p, o, b, k: optimise(setup.learner, p, o, b, k)
+        )(learner.params, learner.opt_state, batch, jax.random.PRNGKey(1))
         return params, metrics
 
     full, full_metrics = optimised("ppo.epochs=4")

@@ -36,13 +36,8 @@ from cmat.envs.protocol import EnvSpec
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners import trainer as trainer_lib
-from cmat.runners.trainer import (
-    Trainer,
-    build_setup,
-    init_state,
-    make_batch,
-    nonfinite_code,
-)
+from cmat.runners.learner import make_batch, nonfinite_code
+from cmat.runners.trainer import JaxTrainer, build_setup, init_state
 
 REFERENCE = {
     "cmat": (1.0, False, False),
@@ -89,14 +84,15 @@ def test_target_critic_follows_tau(algo: str, tau: list[str]) -> None:
     ])
     setup = build_setup(config)
     state = init_state(setup, jax.random.PRNGKey(0))
-    before = state.target_params
+    before = state.learner.target_params
     after, _ = jax.jit(lambda s: trainer_lib.update_step(setup, s))(state)
     tau = config.ppo.target_tau
-    expected = jax.tree.map(lambda new, old: tau * new + (1 - tau) * old, after.params, before)
+    expected = jax.tree.map(lambda new, old: tau * new + (1 - tau) * old, after.learner.params,
+                            before)
     moved = jax.tree.map(lambda a, b: bool(np.any(np.asarray(a) != np.asarray(b))),
-                         after.params, state.params)
+                         after.learner.params, state.learner.params)
     assert any(jax.tree.leaves(moved))
-    for got, want in zip(jax.tree.leaves(after.target_params), jax.tree.leaves(expected)):
+    for got, want in zip(jax.tree.leaves(after.learner.target_params), jax.tree.leaves(expected)):
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
 
 
@@ -284,22 +280,23 @@ def test_mat_gae_runs_per_agent_on_each_agents_value(per_agent: bool) -> None:
     ])
     setup = build_setup(config)
     state = init_state(setup, jax.random.PRNGKey(0))
-    state, rollout = jax.jit(lambda s: trainer_lib.collect_rollout(setup, s))(state)
+    learner = state.learner
+    _, rollout = jax.jit(setup.collector.collect)(learner.params, state.envs, learner.rng)
     rng = np.random.default_rng(1)
-    rollout = rollout._replace(
+    rollout = rollout._replace(steps=rollout.steps._replace(
         reward=jnp.asarray(rng.normal(size=(6, 2)), jnp.float32),
         done=jnp.asarray(rng.random((6, 2)) < 0.3),
-    )
-    _, batch = jax.jit(lambda s, r: make_batch(setup, s, r))(state, rollout)
-    network = setup.algorithm.network
-    obs = np.concatenate([np.asarray(rollout.obs), np.asarray(state.timestep.obs)[None]])
+    ))
+    _, batch = jax.jit(lambda s, r: make_batch(setup.learner, s, r))(learner, rollout)
+    network = setup.learner.algorithm.network
+    obs = np.concatenate([np.asarray(rollout.steps.obs), np.asarray(rollout.next_obs)[None]])
     agent_values = np.asarray(jax.vmap(jax.vmap(
-        lambda o: network.apply(state.target_params, o, method=type(network).encode)[1]
+        lambda o: network.apply(learner.target_params, o, method=type(network).encode)[1]
     ))(jnp.asarray(obs)))
     values = agent_values if per_agent else agent_values.mean(-1)
     extra = (None,) if per_agent else ()
-    rewards = np.asarray(rollout.reward)[(..., *extra)]
-    dones = np.asarray(rollout.done, np.float32)[(..., *extra)]
+    rewards = np.asarray(rollout.steps.reward)[(..., *extra)]
+    dones = np.asarray(rollout.steps.done, np.float32)[(..., *extra)]
     shape = values[:-1].shape
     expected, _ = plain_gae(np.broadcast_to(rewards, shape).copy(), values[:-1],
                             np.broadcast_to(dones, shape), values[-1], 0.99, 0.95)
@@ -504,14 +501,18 @@ def test_checkpoints_without_the_new_timestep_fields_still_load(tmp_path: Path) 
     import flax.serialization
 
     config = load_config(overrides=["env=smax:3m", "algo=mappo", "num_envs=2", *TINY[1:]])
-    trainer = Trainer(config)
+    trainer = JaxTrainer(config)
     state = trainer.init()
-    raw = flax.serialization.to_state_dict(state)
+    assert state.envs is not None
+    raw = {**flax.serialization.to_state_dict(state.learner),
+           **flax.serialization.to_state_dict(state.envs)}  # the checkpoint format
     del raw["timestep"]["alive"], raw["timestep"]["global_state"]
     restored = trainer.from_bytes(flax.serialization.msgpack_serialize(raw))
-    assert bool(np.all(restored.timestep.alive))
-    assert not np.any(restored.timestep.global_state)
-    for got, want in zip(jax.tree.leaves(restored.params), jax.tree.leaves(state.params)):
+    assert restored.envs is not None
+    assert bool(np.all(restored.envs.timestep.alive))
+    assert not np.any(restored.envs.timestep.global_state)
+    for got, want in zip(jax.tree.leaves(restored.learner.params),
+                         jax.tree.leaves(state.learner.params)):
         np.testing.assert_array_equal(got, want)
 
 

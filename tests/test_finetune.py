@@ -22,7 +22,7 @@ from cmat.networks.cmat import ConsensusDecoder
 from cmat.networks.layers import Compressor
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
-from cmat.runners.trainer import Trainer
+from cmat.runners.trainer import JaxTrainer
 
 TINY = ["num_envs=4", "rollout_length=25", "log_interval=5", "ppo.epochs=2", "eval_episodes=4"]
 BASE = ["train", "--env", "matrix:fig1", "--steps", "500", "--seeds", "2", "--set", *TINY]
@@ -37,7 +37,8 @@ def one_error_line(stderr: str) -> str:
 
 def params_of(run: Path) -> Any:
     run_dir = RunDir.open(run)
-    return Trainer(run_dir.config()).from_bytes(run_dir.load_checkpoint()[0]).params["params"]
+    return JaxTrainer(run_dir.config()).from_bytes(
+        run_dir.load_checkpoint()[0]).learner.params["params"]
 
 
 def leaves(block: Any) -> list[np.ndarray]:

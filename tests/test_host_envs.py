@@ -31,8 +31,8 @@ from cmat.envs.host import make_host_env
 from cmat.envs.host.pool import InProcessPool, WorkerPool
 from cmat.errors import CmatError
 from cmat.resolve import load_config
+from cmat.runners.base import TrainerState
 from cmat.runners.host import HostTrainer
-from cmat.runners.trainer import TrainerState
 
 HERE = __name__
 HAS_MUJOCO = importlib.util.find_spec("gymnasium_robotics") is not None
@@ -394,16 +394,17 @@ def test_permuting_agents_permutes_the_policy_through_the_host_runner(reach_run:
         obs, mask = plain._start_episodes()[:2]
         other_obs, other_mask = permuted._start_episodes()[:2]
         np.testing.assert_array_equal(other_obs, obs[:, order])
-        network = plain.setup.algorithm.network
-        params = jax.tree.map(lambda x: x[0], state.params)
+        network = plain.learner_setup.algorithm.network
+        params = jax.tree.map(lambda x: x[0], state.learner.params)
 
         def means(obs: np.ndarray, mask: np.ndarray) -> jax.Array:
             return jax.vmap(lambda o, m: network.apply(params, o, m).action_params)(obs, mask)
 
         np.testing.assert_allclose(means(other_obs, other_mask), means(obs, mask)[:, order],
                                    atol=1e-5)
-        _, acted, _ = plain._policy(state.params, state.rng, obs[None], mask[None])
-        _, other_acted, _ = permuted._policy(state.params, state.rng, other_obs[None],
+        learner = state.learner
+        _, acted, _ = plain._policy(learner.params, learner.rng, obs[None], mask[None])
+        _, other_acted, _ = permuted._policy(learner.params, learner.rng, other_obs[None],
                                              other_mask[None])
         np.testing.assert_allclose(acted.value, other_acted.value, atol=1e-5)
         np.testing.assert_allclose(plain.evaluate(state, 4)["episode_return"],

@@ -20,7 +20,7 @@ from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution
 from cmat.resolve import load_config
-from cmat.runners.trainer import Trainer
+from cmat.runners.trainer import JaxTrainer
 
 TINY = [
     "num_envs=8", "rollout_length=10", "ppo.epochs=2", "network.n_embd=16",
@@ -83,11 +83,11 @@ def pmat_team() -> Team:
 ], ids=lambda p: f"{p[0]}-{p[1]}")
 def trained(request: pytest.FixtureRequest) -> tuple[str, Any, Any, dict[str, np.ndarray]]:
     algo, env = request.param
-    trainer = Trainer(load_config(overrides=[f"algo={algo}", f"env={env}", *TINY]))
+    trainer = JaxTrainer(load_config(overrides=[f"algo={algo}", f"env={env}", *TINY]))
     before = trainer.init()
-    initial = jax.tree.map(np.array, before.params)
+    initial = jax.tree.map(np.array, before.learner.params)
     after, metrics = trainer.train_chunk(before)
-    return algo, initial, jax.tree.map(np.array, after.params), metrics
+    return algo, initial, jax.tree.map(np.array, after.learner.params), metrics
 
 
 def test_trains_through_the_shared_trainer(trained: tuple) -> None:

@@ -15,7 +15,7 @@ from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
 from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
-from cmat.runners.trainer import Trainer
+from cmat.runners.trainer import JaxTrainer
 
 TINY = ["num_envs=8", "rollout_length=10", "ppo.epochs=2", "network.n_embd=16", "eval_episodes=4"]
 
@@ -97,32 +97,33 @@ def test_target_critic_is_soft_updated_after_each_update() -> None:
     config = load_config(overrides=["env=matrix:fig1", "ppo.target_tau=0.25", *TINY])
     setup = trainer_lib.build_setup(config)
     state = trainer_lib.init_state(setup, jax.random.PRNGKey(0))
-    perturbed = jax.tree.map(lambda x: x + 1.0, state.target_params)
-    state = state.replace(target_params=perturbed)
+    perturbed = jax.tree.map(lambda x: x + 1.0, state.learner.target_params)
+    state = state.replace(learner=state.learner.replace(target_params=perturbed))
     new_state, _ = jax.jit(lambda s: trainer_lib.update_step(setup, s))(state)
-    expected = jax.tree.map(lambda p, t: 0.25 * p + 0.75 * t, new_state.params, perturbed)
-    for got, want in zip(jax.tree.leaves(new_state.target_params), jax.tree.leaves(expected)):
+    expected = jax.tree.map(lambda p, t: 0.25 * p + 0.75 * t, new_state.learner.params, perturbed)
+    target = new_state.learner.target_params
+    for got, want in zip(jax.tree.leaves(target), jax.tree.leaves(expected)):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
-    assert int(new_state.update_step) == 1
+    assert int(new_state.learner.update_step) == 1
 
 
 def test_seeds_in_one_program_match_separate_runs() -> None:
     overrides = ["env=matrix:fig1", "total_steps=160", "log_interval=2", *TINY]
-    together = Trainer(load_config(overrides=[*overrides, "seeds=2", "seed=3"]))
-    alone = Trainer(load_config(overrides=[*overrides, "seeds=1", "seed=4"]))
+    together = JaxTrainer(load_config(overrides=[*overrides, "seeds=2", "seed=3"]))
+    alone = JaxTrainer(load_config(overrides=[*overrides, "seeds=1", "seed=4"]))
     state_together, metrics_together = together.train_chunk(together.init())
     state_alone, _metrics_alone = alone.train_chunk(alone.init())
-    leaves_together = jax.tree.leaves(state_together.params)
-    for both, one in zip(leaves_together, jax.tree.leaves(state_alone.params)):
+    leaves_together = jax.tree.leaves(state_together.learner.params)
+    for both, one in zip(leaves_together, jax.tree.leaves(state_alone.learner.params)):
         np.testing.assert_allclose(both[1], one[0], rtol=1e-4, atol=1e-5)
-    assert any(not np.allclose(leaf[0], leaf[1]) for leaf in jax.tree.leaves(state_together.params))
+    assert any(not np.allclose(leaf[0], leaf[1]) for leaf in leaves_together)
     assert metrics_together["env_steps"].tolist() == [160, 160]
 
 
 def test_make_train_is_one_pure_program() -> None:
     config = load_config(overrides=["env=matrix:fig1", "total_steps=240", *TINY])
     state, metrics = jax.jit(trainer_lib.make_train(config))(jax.random.PRNGKey(0))
-    assert int(state.update_step) == config.num_updates == 3
+    assert int(state.learner.update_step) == config.num_updates == 3
     assert metrics["policy_loss"].shape == (3,)
     assert np.all(np.isfinite(np.asarray(metrics["value_loss"])))
 
@@ -143,7 +144,7 @@ def test_smax_3m_improves_on_its_starting_return() -> None:
     config = load_config(overrides=[
         "env=smax:3m", "total_steps=32000", "log_interval=10", "eval_episodes=64",
     ])
-    trainer = Trainer(config)
+    trainer = JaxTrainer(config)
     state = trainer.init()
     before = trainer.evaluate(state, 64)
     state, metrics = trainer.train_chunk(state)

@@ -23,7 +23,7 @@ from cmat.errors import CmatError
 from cmat.resolve import resolve_config
 
 if TYPE_CHECKING:
-    from cmat.runners.trainer import Trainer, TrainerState
+    from cmat.runners.base import Trainer, TrainerState
 
 FIXED_FIELDS = ("env", "env_kwargs", "algo", "seeds", "seed", "network")
 """What a fine-tuning run cannot change: the checkpoint holds parameters for exactly these."""
@@ -71,11 +71,12 @@ def finetune_start(trainer: Trainer, source_trainer: Trainer, data: bytes) -> Tr
     for `trainer`'s masked optimizer."""
     source = source_trainer.from_bytes(data)
     fresh = trainer.init()
-    return dataclasses.replace(
-        fresh,
-        params=source.params,
-        target_params=source.target_params,
-        value_norm=source.value_norm,
-        opt_state=jax.vmap(trainer.setup.optimizer.init)(source.params),
-        rng=jax.vmap(lambda key: jax.random.fold_in(key, 1))(fresh.rng),
+    learner = dataclasses.replace(
+        fresh.learner,
+        params=source.learner.params,
+        target_params=source.learner.target_params,
+        value_norm=source.learner.value_norm,
+        opt_state=jax.vmap(trainer.learner_setup.optimizer.init)(source.learner.params),
+        rng=jax.vmap(lambda key: jax.random.fold_in(key, 1))(fresh.learner.rng),
     )
+    return dataclasses.replace(fresh, learner=learner)

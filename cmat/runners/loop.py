@@ -20,7 +20,7 @@ from cmat.plots import plot_runs
 from cmat.rundir import DIAGNOSTIC_COLUMNS, PER_RUN_PREFIXES, Row, RunDir
 
 if TYPE_CHECKING:
-    from cmat.runners.trainer import Trainer, TrainerState
+    from cmat.runners.base import Trainer, TrainerState
 
 RESULT_KEYS = ("env_steps", "episode_return", "win_rate")
 
@@ -162,7 +162,7 @@ def stop_if_nonfinite(
 ) -> None:
     """Raise `CmatError` naming the first update (1-based, counted over the run) and seed whose
     loss, gradient norm or parameters were not finite; pops the two flags from `train`."""
-    from cmat.runners.trainer import NONFINITE_QUANTITIES
+    from cmat.runners.learner import NONFINITE_QUANTITIES
 
     first = train.pop("nonfinite_update").astype(int)
     codes = train.pop("nonfinite_code").astype(int)

@@ -1,0 +1,152 @@
+"""What `cmat train`, `eval`, `finetune` and `experiment` drive: the `Trainer` protocol, the
+state it carries, and the checkpoint format every trainer writes.
+
+Two trainers implement the protocol: `cmat.runners.trainer.JaxTrainer` (JAX environments
+stepped inside one compiled program) and `cmat.runners.host.HostTrainer` (simulators stepped
+on the host). Both pair a collector with the same learner (`cmat.runners.learner`) and the same
+evaluation semantics (`cmat.runners.evaluation`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import flax.serialization
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cmat.config import TrainConfig
+from cmat.envs.protocol import EnvSpec
+from cmat.errors import CmatError
+from cmat.runners.collector import EnvsState
+from cmat.runners.learner import LearnerSetup, LearnerState
+
+
+@flax.struct.dataclass
+class TrainerState:
+    """Every seed's state of a run (a leading seed axis on each leaf): the learner's, and the
+    environments' where they live inside the program (None for host runs)."""
+
+    learner: LearnerState
+    envs: EnvsState | None
+
+
+class Trainer(Protocol):
+    """A run's programs for all its seeds."""
+
+    @property
+    def config(self) -> TrainConfig: ...
+
+    @property
+    def env_spec(self) -> EnvSpec: ...
+
+    @property
+    def learner_setup(self) -> LearnerSetup:
+        """The algorithm and optimizer the run learns with."""
+        ...
+
+    def init(self) -> TrainerState:
+        """A fresh state of every seed."""
+        ...
+
+    def train_chunk(
+        self, state: TrainerState, updates: int | None = None
+    ) -> tuple[TrainerState, dict[str, np.ndarray]]:
+        """`updates` (default and at most `config.updates_per_log`) updates of every seed; the
+        metrics have one entry per seed, `env_steps` among them."""
+        ...
+
+    def evaluate(self, state: TrainerState, episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
+        """Greedy `episode_return` and `win_rate` of `episodes` episodes per seed
+        (`cmat.runners.evaluation`); the same `seed` plays the same episodes."""
+        ...
+
+    def env_steps(self, state: TrainerState) -> int:
+        """Env steps per seed done by `state`."""
+        ...
+
+    def to_bytes(self, state: TrainerState) -> bytes: ...
+
+    def from_bytes(self, data: bytes) -> TrainerState:
+        """The state in checkpoint `data`; raises CmatError for corrupt or mismatched data."""
+        ...
+
+    def close(self) -> None:
+        """Release what the trainer runs outside the program (simulator workers)."""
+        ...
+
+
+ADDED_TIMESTEP_FIELDS = {"alive": True, "global_state": 0.0}
+"""`TimeStep` fields newer than the first checkpoint format, with the value a checkpoint
+without them gets: every agent active, a zero global state. They describe only the
+observation in progress when the checkpoint was written, so a resumed run's first step at most
+sees them wrong; everything learned is restored exactly."""
+
+
+def state_to_bytes(state: TrainerState) -> bytes:
+    """The checkpoint format of every cmat version: one flat map of the learner's fields and,
+    for in-graph runs, the environments' (`env_state`, `timestep`, `episode_return`)."""
+    fields: dict[str, Any] = dict(flax.serialization.to_state_dict(state.learner))
+    if state.envs is not None:
+        fields.update(flax.serialization.to_state_dict(state.envs))
+    return flax.serialization.msgpack_serialize(fields)
+
+
+def fill_added_timestep_fields(raw: dict[str, Any], template: EnvsState) -> None:
+    """Add `ADDED_TIMESTEP_FIELDS` to restored environment fields that lack them (in place)."""
+    if not isinstance(raw.get("timestep"), dict):
+        return
+    for name, value in ADDED_TIMESTEP_FIELDS.items():
+        if name not in raw["timestep"]:
+            shape = getattr(template.timestep, name)
+            raw["timestep"][name] = np.full(shape.shape, value, shape.dtype)
+
+
+def restore_state(
+    learner: LearnerState, envs: EnvsState | None, seeds: int, data: bytes
+) -> TrainerState:
+    """The all-seeds state serialised in `data` (`state_to_bytes`; a host run's checkpoint from
+    before the learner had its own state carries environment fields, which are ignored),
+    checked against one seed's templates (shapes and dtypes, e.g. from `jax.eval_shape`)."""
+    template = jax.tree.map(lambda x: jax.ShapeDtypeStruct((seeds, *x.shape), x.dtype),
+                            TrainerState(learner, envs))
+    try:
+        raw = flax.serialization.msgpack_restore(data)
+        if not isinstance(raw, dict):
+            raise TypeError("not a map")
+        learner_fields = flax.serialization.to_state_dict(template.learner)
+        restored_learner = flax.serialization.from_state_dict(
+            template.learner, {name: raw[name] for name in learner_fields})
+        restored_envs = None
+        if template.envs is not None:
+            env_fields = {name: raw[name]
+                          for name in flax.serialization.to_state_dict(template.envs)}
+            fill_added_timestep_fields(env_fields, template.envs)
+            restored_envs = flax.serialization.from_state_dict(template.envs, env_fields)
+        restored = TrainerState(restored_learner, restored_envs)
+    except Exception as error:  # msgpack and flax raise many types for bad bytes
+        raise CmatError(f"corrupt or incompatible checkpoint ({type(error).__name__})") from None
+    expected = jax.tree.map(lambda x: (x.shape, x.dtype), template)
+    found = jax.tree.map(lambda x: (np.shape(x), np.asarray(x).dtype), restored)
+    if expected != found:
+        raise CmatError("checkpoint does not match this run's config (shapes differ)")
+    state: TrainerState = jax.tree.map(jnp.asarray, restored)
+    return state
+
+
+def stack_seeds(states: list[TrainerState]) -> TrainerState:
+    """One state with a leading seed axis from each seed's state."""
+    stacked: TrainerState = jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
+    return stacked
+
+
+def seed_keys(config: TrainConfig, offset: int = 0) -> jax.Array:
+    """[seeds] PRNG keys of the run's seeds, `offset` added to each seed number."""
+    seeds = config.seed + np.arange(config.seeds) + offset
+    return jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
+
+
+EVAL_SEED_OFFSET = 1_000_003
+"""Added to a seed number for its evaluation keys: evaluation never replays training's."""

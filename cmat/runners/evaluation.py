@@ -1,0 +1,97 @@
+"""Greedy evaluation, with one episode semantics for in-graph and host runs.
+
+`episodes` episodes per seed are played on `slots` environments, each slot playing its quota
+(`split_evenly(episodes, slots)`) of whole episodes one after another. The score is the mean
+return over the `episodes` episodes and the fraction of them won; a slot whose last counted
+episode has not ended when the step limit (quota × the environment's episode limit) is reached
+counts its running return. Episodes past a slot's quota are played but not counted, so short
+episodes are not over-counted. In-graph runs use one slot per episode (every episode runs in
+parallel inside the program); host runs min(episodes, num_envs) slots, since each slot is a
+simulator. The bookkeeping (`EpisodeTally`) is the same code in both, on jax.numpy inside the
+program and on NumPy in the host loop.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cmat.algorithms.base import Algorithm, Params
+from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
+from cmat.runners.collector import env_actions
+
+
+class EpisodeTally(NamedTuple):
+    """Per slot [..., slots]: the return of the episode running, the summed return and wins of
+    the counted episodes, and how many episodes have ended."""
+
+    running: Any
+    total: Any
+    wins: Any
+    finished: Any
+
+
+def split_evenly(total: int, parts: int) -> np.ndarray:
+    """`parts` non-negative counts summing to `total`, as equal as possible."""
+    return np.diff(np.linspace(0, total, parts + 1).round().astype(int))
+
+
+def tally_start(shape: tuple[int, ...], xp: Any = np) -> EpisodeTally:
+    zeros = xp.zeros(shape, xp.float32)
+    return EpisodeTally(zeros, zeros, zeros, xp.zeros(shape, xp.int32))
+
+
+def tally_step(
+    tally: EpisodeTally, reward: Any, done: Any, won: Any, quota: Any, xp: Any = np
+) -> EpisodeTally:
+    """The tally after one step of every slot with these rewards, episode ends and wins."""
+    running = tally.running + reward
+    counted = done & (tally.finished < quota)
+    return EpisodeTally(
+        running=xp.where(done, 0.0, running).astype(xp.float32),
+        total=(tally.total + xp.where(counted, running, 0.0)).astype(xp.float32),
+        wins=(tally.wins + (counted & won)).astype(xp.float32),
+        finished=tally.finished + done,
+    )
+
+
+def tally_result(
+    tally: EpisodeTally, quota: Any, episodes: int, spec: EnvSpec, xp: Any = np
+) -> dict[str, Any]:
+    """Mean return and win rate (NaN where the environment has none) over the last axis."""
+    total = tally.total + xp.where(tally.finished < quota, tally.running, 0.0)
+    win_rate = tally.wins.sum(axis=-1) / episodes
+    return {
+        "episode_return": (total.sum(axis=-1) / episodes).astype(xp.float32),
+        "win_rate": (win_rate if spec.has_win_rate else xp.full_like(win_rate, xp.nan))
+        .astype(xp.float32),
+    }
+
+
+def evaluate_in_graph(
+    env: MarlEnv, algorithm: Algorithm, params: Params, rng: jax.Array, episodes: int
+) -> dict[str, jax.Array]:
+    """`episodes` greedy episodes of one seed in parallel inside the program (one slot each)."""
+    spec = env.spec
+    reset_key, rng = jax.random.split(rng)
+    env_state, timestep = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
+    greedy = jax.vmap(algorithm.greedy, in_axes=(None, 0, 0))
+    quota = jnp.ones(episodes, jnp.int32)
+
+    Carry = tuple[Any, TimeStep, EpisodeTally]
+
+    def step(carry: Carry, key: jax.Array) -> tuple[Carry, None]:
+        env_state, timestep, tally = carry
+        actions = env_actions(spec, greedy(params, timestep.obs, timestep.action_mask))
+        env_state, timestep = jax.vmap(env.step)(
+            jax.random.split(key, episodes), env_state, actions
+        )
+        tally = tally_step(tally, timestep.reward, timestep.done, timestep.won, quota, jnp)
+        return (env_state, timestep, tally), None
+
+    carry = (env_state, timestep, tally_start((episodes,), jnp))
+    (_, _, tally), _ = jax.lax.scan(step, carry, jax.random.split(rng, spec.max_episode_steps))
+    return tally_result(tally, quota, episodes, spec, jnp)
