@@ -19,6 +19,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from cmat.algorithms import algorithm_class
 from cmat.config import (
     FINETUNE_MODES,
     NESTED_FIELDS,
@@ -196,8 +197,11 @@ def config_command(args: argparse.Namespace) -> None:
     flat = {**{k: v for k, v in asdict(config).items() if k not in NESTED_FIELDS},
             **{f"{section}.{k}": v for section in NESTED_FIELDS
                for k, v in asdict(config)[section].items()}}
+    read = {f"network.{name}" for name in algorithm_class(config.algo).network_fields}
     for name, value in flat.items():
-        print(f"{name} = {value!r}  [{sources.get(name, 'default')}]")
+        unread = (f"; not read by {config.algo}"
+                  if name.startswith("network.") and name not in read else "")
+        print(f"{name} = {value!r}  [{sources.get(name, 'default')}{unread}]")
         if docs.get(name):
             print(textwrap.fill(docs[name], width=96, initial_indent="    ",
                                 subsequent_indent="    "))

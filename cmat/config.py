@@ -31,7 +31,9 @@ LOGGERS = ("tensorboard", "wandb")
 
 @dataclass(frozen=True)
 class NetworkConfig:
-    """CMAT network sizes (paper Sec. Network Architecture)."""
+    """Network sizes (paper Sec. Network Architecture) and CMAT's consensus options. Each
+    algorithm reads the fields its class lists in `network_fields` (MAPPO and HAPPO read
+    `n_embd` as their MLPs' width); `cmat config --algo NAME` marks the fields it does not."""
 
     n_embd: int = 64
     """Hidden size d of every block."""

@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
+import jax
+import numpy as np
 import pytest
 
+from cmat.algorithms import algorithm_class, algorithm_names, build_algorithm
 from cmat.cli import main
-from cmat.config import field_docs, field_names
+from cmat.config import NetworkConfig, field_docs, field_names
+from cmat.envs import make_env
 
 
 def test_every_config_field_has_a_docstring() -> None:
@@ -32,3 +39,46 @@ def test_config_with_an_unknown_algorithm_is_one_error(
 ) -> None:
     assert main(["config", "--algo", "nope"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+CHANGED_NETWORK_FIELDS = {
+    "n_embd": 32, "n_head": 2, "n_block": 2, "compressor_heads": 2, "consensus_iterations": 1,
+    "consensus_source": "last", "consensus_policy": "categorical", "consensus_codes": 4,
+    "latent_head_gain": 0.5, "init_gain": 0.5, "log_std_init": 0.0,
+}
+
+
+@pytest.mark.parametrize("algo", algorithm_names())
+def test_network_fields_an_algorithm_does_not_declare_leave_it_unchanged(algo: str) -> None:
+    assert set(CHANGED_NETWORK_FIELDS) == {f.name for f in dataclasses.fields(NetworkConfig)}
+    env = make_env("matrix:fig1")
+    _, timestep = env.reset(jax.random.PRNGKey(0))
+
+    def built(network: NetworkConfig) -> tuple[Any, Any]:
+        algorithm = build_algorithm(algo, network, env.spec)
+        params = algorithm.init(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
+        return params, algorithm.greedy(params, timestep.obs, timestep.action_mask)
+
+    declared = algorithm_class(algo).network_fields
+    assert set(declared) <= set(CHANGED_NETWORK_FIELDS)
+    reference_params, reference_actions = built(NetworkConfig())
+    for name, value in CHANGED_NETWORK_FIELDS.items():
+        if name in declared:
+            continue
+        params, actions = built(dataclasses.replace(NetworkConfig(), **{name: value}))
+        assert jax.tree.structure(params) == jax.tree.structure(reference_params), name
+        for got, want in zip(jax.tree.leaves(params), jax.tree.leaves(reference_params),
+                             strict=True):
+            np.testing.assert_array_equal(got, want, err_msg=name)
+        np.testing.assert_array_equal(actions, reference_actions, err_msg=name)
+
+
+def test_config_marks_the_network_fields_an_algorithm_does_not_read(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["config", "--algo", "mappo"]) == 0
+    out = capsys.readouterr().out
+    assert "network.n_embd = 64  [default]\n" in out
+    assert "network.n_head = 1  [default; not read by mappo]" in out
+    assert main(["config", "--algo", "cmat"]) == 0
+    assert "not read" not in capsys.readouterr().out

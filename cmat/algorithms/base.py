@@ -78,6 +78,10 @@ class Algorithm(Protocol):
     finetune_stages: ClassVar[tuple[str, ...]]
     """The fine-tuning stages (`TrainConfig.finetune`) `finetune_labels` knows."""
 
+    network_fields: ClassVar[tuple[str, ...]]
+    """The `NetworkConfig` fields its networks read; the others leave it unchanged
+    (`cmat config --algo NAME` marks them)."""
+
     capabilities: ClassVar[frozenset[str]]
     """What the algorithm has of `cmat.algorithms.OPTION_CAPABILITIES`: 'consensus',
     'joint_ratio', 'per_agent_values'; the options that need one are rejected without it."""

@@ -13,7 +13,7 @@ own coefficient, `ppo.consensus_ent_coef`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, ClassVar, NamedTuple, cast
 
 import distrax
@@ -87,6 +87,7 @@ class CMAT(PPOAlgorithm):
     name: ClassVar[str] = "cmat"
     finetune_stages: ClassVar[tuple[str, ...]] = tuple(FINETUNE_TRAINABLE)
     capabilities: ClassVar[frozenset[str]] = frozenset({"consensus", "joint_ratio"})
+    network_fields: ClassVar[tuple[str, ...]] = tuple(f.name for f in fields(NetworkConfig))
 
     reference_defaults: ClassVar[dict[str, Any]] = TUNED_SETTINGS
     """The reference MAT's settings (the dataclass defaults and the suite's column) with the

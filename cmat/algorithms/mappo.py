@@ -44,6 +44,8 @@ class MAPPO(PPOAlgorithm):
     """The environment's global state size; 0: the critic reads the concatenated observations."""
 
     name: ClassVar[str] = "mappo"
+    network_fields: ClassVar[tuple[str, ...]] = ("n_embd", "init_gain", "log_std_init")
+    """`n_embd` is the hidden width of the actor's and the critic's MLPs."""
 
     presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
     """'paper': the paper's comparison setting, the reference settings with 8 rollout

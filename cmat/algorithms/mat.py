@@ -44,6 +44,9 @@ class MAT(PPOAlgorithm):
 
     name: ClassVar[str] = "mat"
     capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
+    network_fields: ClassVar[tuple[str, ...]] = (
+        "n_embd", "n_head", "n_block", "init_gain", "log_std_init")
+    """The encoder-decoder's sizes (MATNetwork)."""
 
     presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
     """'paper': the paper's comparison setting, the reference settings with 8 rollout

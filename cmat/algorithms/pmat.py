@@ -56,6 +56,8 @@ class PMAT(PPOAlgorithm):
 
     name: ClassVar[str] = "pmat"
     capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
+    network_fields: ClassVar[tuple[str, ...]] = MAT.network_fields
+    """MAT's; the order scorer has MAT's width `n_embd` and gain `init_gain`."""
 
     reference_defaults: ClassVar[dict[str, Any]] = MAT.reference_defaults
     """PMAT is built on the reference MAT code and trains as it does."""

@@ -28,6 +28,9 @@ class TripleBERT(CMAT):
     the paper trains CMAT (joint ratio clipped to [1 − ε, 1 + ε], target critic τ = 0.1)."""
     finetune_stages: ClassVar[tuple[str, ...]] = ()
     capabilities: ClassVar[frozenset[str]] = frozenset({"joint_ratio"})
+    network_fields: ClassVar[tuple[str, ...]] = (
+        "n_embd", "n_head", "n_block", "compressor_heads", "init_gain", "log_std_init")
+    """CMAT's sizes without its decoder and consensus (TripleBERTNetwork)."""
     finetune_labels = PPOAlgorithm.finetune_labels
 
     @classmethod
