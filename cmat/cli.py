@@ -158,6 +158,10 @@ def build_parser() -> argparse.ArgumentParser:
                             help="write the figures and tables from the complete runs on disk "
                                  "and start no run (a grid still in progress, or split over "
                                  "machines)")
+    experiment.add_argument("--only", nargs="+", metavar="PATTERN",
+                            help="run only the grid's runs whose names (ENV/VARIANT/ALGO-sA-B, "
+                                 "as --dry-run lists them) match a shell pattern, e.g. "
+                                 "'smax_2s3z/*' '*/default/mappo-*'")
     experiment.set_defaults(handler=experiment_command)
     return parser
 
@@ -339,7 +343,7 @@ def experiment_command(args: argparse.Namespace) -> None:
     from cmat.experiments.runner import run_experiment
 
     run_experiment(args.spec, out=args.out, parallel=args.parallel, ray_address=args.ray,
-                   dry_run=args.dry_run, report_only=args.report_only)
+                   dry_run=args.dry_run, report_only=args.report_only, only=args.only)
 
 
 def render_command(args: argparse.Namespace) -> None:

@@ -320,6 +320,22 @@ def test_unreadable_specs_and_options_are_one_error_line(
     assert "--parallel must be > 0" in one_error_line(capsys.readouterr().err)
 
 
+def test_only_runs_the_matching_runs_and_reports_every_complete_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "two.yaml"
+    path.write_text(yaml.safe_dump({**SPEC, "steps": 400, "algos": ["cmat", "mat"]}))
+    out = tmp_path / "out"
+    assert main(["experiment", str(path), "--out", str(out), "--only", "*/mat-*"]) == 0
+    assert "--only */mat-*: 1 of 2 runs: matrix_fig1/default/mat-s0" in capsys.readouterr().out
+    assert checkpoint_steps(out / "runs/matrix_fig1/default/mat-s0") == 400
+    assert not (out / "runs/matrix_fig1/default/cmat-s0").exists()
+    assert "| MAT |" in (out / "results.md").read_text()
+    assert main(["experiment", str(path), "--out", str(out), "--only", "smax_3m/*"]) == 2
+    assert "--only 'smax_3m/*' matches no run of the grid" in one_error_line(
+        capsys.readouterr().err)
+
+
 @pytest.mark.parametrize("name", ["paper_main.yaml", "paper_ablation.yaml", "smoke.yaml",
                                   "cmat_speed_study.yaml", "cmat_speed_study_long.yaml",
                                   "cmat_speed_study_3s5z_long.yaml"])

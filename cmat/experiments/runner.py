@@ -5,6 +5,7 @@ missing (`cmat.experiments.execute`), report the results from every complete run
 
 from __future__ import annotations
 
+import fnmatch
 import shutil
 from contextlib import nullcontext
 from pathlib import Path
@@ -18,7 +19,17 @@ from cmat.experiments.execute import (
     execute,
     experiment_lock,
 )
-from cmat.experiments.plan import NEW, REDO, RESUME, Plan, inspect_all, make_plan, print_plan, say
+from cmat.experiments.plan import (
+    NEW,
+    REDO,
+    RESUME,
+    Plan,
+    Run,
+    inspect_all,
+    make_plan,
+    print_plan,
+    say,
+)
 from cmat.experiments.report import write_report
 from cmat.experiments.spec import load_spec
 
@@ -30,10 +41,13 @@ def run_experiment(
     ray_address: str | None = None,
     dry_run: bool = False,
     report_only: bool = False,
+    only: list[str] | None = None,
 ) -> Plan:
     """Plan, execute and report the experiment of `spec_path` in `out`; with `report_only`,
     report the complete runs already in `out` and start none (without the directory's lock,
-    so it can report a grid another process is still running)."""
+    so it can report a grid another process is still running). `only` (shell patterns on run
+    names `ENV/VARIANT/ALGO-sFIRST-LAST`) runs just the matching runs of the grid; the report
+    still covers every complete run."""
     spec = load_spec(spec_path)
     if parallel is not None and parallel <= 0:
         raise CmatError(f"--parallel must be > 0, got {parallel}")
@@ -41,8 +55,10 @@ def run_experiment(
         raise CmatError("--dry-run and --report-only exclude each other")
     out = (Path(out) if out is not None else Path("runs") / "experiments" / spec.name).absolute()
     plan = make_plan(spec, out)
+    selected = select(plan, only)
     if dry_run:
         print_plan(plan)
+        say_selection(selected, plan, only)
         return plan
     if report_only and not out.is_dir():
         raise CmatError(f"--report-only: no experiment directory {out}")
@@ -50,12 +66,13 @@ def run_experiment(
     with nullcontext() if report_only else experiment_lock(out):
         inspect_all(plan)  # again: another experiment may have held the directory until now
         print_plan(plan)
+        say_selection(selected, plan, only)
         if spec.path.resolve() != (out / "spec.yaml").resolve():
             shutil.copyfile(spec.path, out / "spec.yaml")
-        for run in plan.runs:
+        for run in selected:
             if run.status == REDO and not report_only:
                 discard(run, out)
-        jobs = [run for run in plan.runs if run.status in (NEW, RESUME, REDO)]
+        jobs = [run for run in selected if run.status in (NEW, RESUME, REDO)]
         if jobs and not report_only:
             cache = out / "jax_cache"
             executor = (RayExecutor(ray_address, cache) if ray_address is not None
@@ -73,3 +90,23 @@ def run_experiment(
             f"{out / 'results.md'}; run the same command again to retry"
         )
     return plan
+
+
+def select(plan: Plan, only: list[str] | None) -> list[Run]:
+    """The runs of `plan` whose names match one of the shell patterns `only` (all without);
+    CmatError for a pattern that matches none."""
+    if only is None:
+        return plan.runs
+    for pattern in only:
+        if not any(fnmatch.fnmatchcase(run.name, pattern) for run in plan.runs):
+            example = plan.runs[0].name if plan.runs else "ENV/VARIANT/ALGO-sFIRST-LAST"
+            raise CmatError(f"--only {pattern!r} matches no run of the grid (runs are named "
+                            f"like {example!r})")
+    return [run for run in plan.runs
+            if any(fnmatch.fnmatchcase(run.name, pattern) for pattern in only)]
+
+
+def say_selection(selected: list[Run], plan: Plan, only: list[str] | None) -> None:
+    if only is not None:
+        say(f"--only {' '.join(only)}: {len(selected)} of {len(plan.runs)} runs: "
+            + ", ".join(run.name for run in selected))
