@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# A slice of the results page's grid (experiments/smax_benchmark.yaml) on one GPU machine in
+# about 10 minutes, brought back as one archive per run directory.
+#
+# Prepare here: `bash scripts/gpu_wheels.sh` (cmat's dependencies the GPU image lacks, into
+# .whl/). There, in the repository root, with .whl carried:
+#   bash benchmarks/gpu_grid_slice.sh OUT 'smax_2s3z/default/pmat-*' 'smax_2s3z/default/happo-*'
+# It runs `cmat experiment ... --only PATTERN...` into OUT/grid for at most GPU_SLICE_SECONDS
+# (default 480), then writes OUT/RUN.tar.gz for each run directory it touched (at most 7, the
+# rest of the 8 files a call brings back is OUT/slice.log). Unpack the archives into the CPU
+# grid's directory (`tar -xzf RUN.tar.gz -C DIR/runs`): complete runs are reused there, runs
+# cut by the time limit resume from their last checkpoint.
+set -uo pipefail
+out=${1:?usage: gpu_grid_slice.sh OUT PATTERN...}
+shift
+[ $# -gt 0 ] || { echo "usage: gpu_grid_slice.sh OUT PATTERN..." >&2; exit 2; }
+limit=${GPU_SLICE_SECONDS:-480}
+PY=${PYTHON:-python3}
+mkdir -p "$out"
+exec > >(tee "$out/slice.log") 2>&1
+if [ -d .whl ]; then
+  "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site .whl/*.whl || exit 1
+  export PYTHONPATH=/tmp/site:$PWD
+else
+  export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+fi
+export PYTHONUNBUFFERED=1
+command -v nvidia-smi >/dev/null && nvidia-smi -L
+"$PY" -c "import jax; print('jax', jax.__version__, jax.devices())" || exit 1
+start=$(date +%s)
+timeout "$limit" "$PY" -m cmat experiment experiments/smax_benchmark.yaml --out "$out/grid" \
+  --parallel 1 --only "$@"
+code=$?
+echo "experiment exit code $code after $(( $(date +%s) - start )) s (124: the time limit)"
+count=0
+for run in "$out"/grid/runs/*/*/*/; do
+  [ -f "$run/config.yaml" ] || continue
+  name=$(echo "${run#"$out"/grid/runs/}" | sed 's:/$::; s:/:__:g')
+  if [ $count -ge 7 ]; then echo "not archived (8 files come back at most): $name"; continue; fi
+  tar -czf "$out/$name.tar.gz" -C "$out/grid/runs" "${run#"$out"/grid/runs/}"
+  count=$((count + 1))
+done
+ls -la "$out"
