@@ -29,6 +29,7 @@ from cmat.runners.base import (
     state_to_bytes,
 )
 from cmat.runners.collector import InGraphCollector
+from cmat.runners.devices import place, sharded_axis
 from cmat.runners.evaluation import evaluate_in_graph
 from cmat.runners.learner import LearnerSetup, build_learner, init_learner, learn, summarise_updates
 
@@ -121,6 +122,8 @@ class JaxTrainer:
         self.setup = build_setup(config)
         self.env_spec = self.setup.spec
         self.learner_setup = self.setup.learner
+        self.devices = jax.local_devices()
+        self.sharded_axis = sharded_axis(len(self.devices), config.seeds, config.num_envs)
         chunk = config.updates_per_log
         collector = self.setup.collector
         self._init = jax.jit(lambda rng: init_state(self.setup, rng))
@@ -141,8 +144,10 @@ class JaxTrainer:
         )
 
     def init(self) -> TrainerState:
-        """Fresh state for every seed, initialised seed by seed (see `make_train`)."""
-        return stack_seeds([self._init(key) for key in seed_keys(self.config)])
+        """Fresh state for every seed, initialised seed by seed (see `make_train`), placed on
+        the local devices (cmat.runners.devices)."""
+        state = stack_seeds([self._init(key) for key in seed_keys(self.config)])
+        return place(state, self.devices, self.sharded_axis)
 
     def train_chunk(
         self, state: TrainerState, updates: int | None = None
@@ -168,7 +173,8 @@ class JaxTrainer:
 
     def from_bytes(self, data: bytes) -> TrainerState:
         template = jax.eval_shape(self._init, seed_keys(self.config)[0])
-        return restore_state(template.learner, template.envs, self.config.seeds, data)
+        state = restore_state(template.learner, template.envs, self.config.seeds, data)
+        return place(state, self.devices, self.sharded_axis)
 
     def close(self) -> None:
         """Nothing runs outside the program."""

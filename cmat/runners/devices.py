@@ -1,0 +1,59 @@
+"""Several local devices: a run's seeds, or else its environments, sharded across them.
+
+`JaxTrainer` uses every local device (`jax.local_devices()`; restrict them with
+`CUDA_VISIBLE_DEVICES` or JAX's platform flags). Its state is placed with a `NamedSharding` over
+a one-axis mesh of those devices: the seed axis (the leading axis of every leaf) when the
+devices divide the number of seeds, else the environment axis of the in-graph environments
+(axis 1 of the `envs` leaves) when they divide `num_envs`, else nothing (one device computes).
+The jitted programs keep that placement, and XLA's SPMD partitioner adds the communication the
+program needs: with the environments sharded, each device steps its share of them and the
+update's means over the batch (the loss, hence the gradients) are reduced across devices. A run
+on several devices therefore computes what it computes on one, up to floating-point order
+(tests/test_devices.py). Host runs (`HostTrainer`) stay on one device.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from cmat.runners.base import TrainerState
+
+AXIS = "devices"
+
+partition_spec: Callable[..., PartitionSpec] = PartitionSpec
+"""`PartitionSpec`, whose constructor jax leaves untyped."""
+
+
+def sharded_axis(devices: int, seeds: int, num_envs: int) -> str | None:
+    """'seeds', 'envs' or None: what a run of `seeds` × `num_envs` shards over `devices`."""
+    if devices <= 1:
+        return None
+    if seeds % devices == 0:
+        return "seeds"
+    if num_envs % devices == 0:
+        return "envs"
+    return None
+
+
+def place(state: TrainerState, devices: list[Any], axis: str | None) -> TrainerState:
+    """`state` put on `devices`, sharded over `axis` (`sharded_axis`); as it is for None."""
+    if axis is None:
+        return state
+    mesh = Mesh(np.array(devices), (AXIS,))
+    replicated = NamedSharding(mesh, partition_spec())
+    by_seed = NamedSharding(mesh, partition_spec(AXIS))
+    by_env = NamedSharding(mesh, partition_spec(None, AXIS))
+    if axis == "seeds":
+        shardings: Any = jax.tree.map(lambda _: by_seed, state)
+    else:
+        shardings = TrainerState(
+            learner=jax.tree.map(lambda _: replicated, state.learner),
+            envs=jax.tree.map(lambda _: by_env, state.envs),
+        )
+    placed: TrainerState = jax.device_put(state, shardings)
+    return placed
