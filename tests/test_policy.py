@@ -16,6 +16,7 @@ import cmat
 from cmat.cli import build_trainer, main
 from cmat.errors import CmatError
 from cmat.rundir import RunDir
+from cmat.runners.base import EVAL_SEED_OFFSET, seed_keys
 
 SMAX_RUN = ["train", "--env", "smax:3m", "--steps", "128", "--seeds", "2", "--set",
             "num_envs=4", "rollout_length=16", "ppo.epochs=1", "eval_episodes=4", "seed=5"]
@@ -33,13 +34,14 @@ def test_a_users_greedy_loop_scores_what_cmat_eval_scores(smax_run: Path) -> Non
     the trainer's evaluation, end with the returns `cmat eval` reports for that seed."""
     policy = cmat.load_policy(smax_run, seed=6)
     assert (policy.seed, policy.env_steps, policy.complete) == (6, 128, True)
-    trainer = build_trainer(RunDir.open(smax_run).config())
+    config = RunDir.open(smax_run).config()
+    trainer = build_trainer(config)
     state = trainer.from_bytes(RunDir.open(smax_run).load_checkpoint()[0])
     episodes = 4
     expected = trainer.evaluate(state, episodes)["episode_return"][1]
 
     env = policy.make_env()
-    rng = trainer.seed_keys(offset=1_000_003)[1]
+    rng = seed_keys(config, offset=EVAL_SEED_OFFSET)[1]
     reset_key, rng = jax.random.split(rng)
     env_state, step = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
     returns, finished = np.zeros(episodes), np.zeros(episodes, bool)
