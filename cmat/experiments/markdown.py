@@ -24,7 +24,8 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
             cells = [f"unavailable: {task['unavailable']}"] + [""] * (len(main) - 1)
         else:
             cells = [cell(task["lines"].get(label), plan.spec.seeds) for label in main]
-        metric = "—" if "unavailable" in task else METRIC_NAMES[task["metric"]]
+        metric = ("—" if "unavailable" in task or not task["lines"]
+                  else METRIC_NAMES[task["metric"]])
         out.append(f"| {task['label']} | {metric} | {task['steps']:,} | " + " | ".join(cells)
                    + " |")
     stage_steps = {line["variant"]: line["steps"] for task in summary["tasks"]
