@@ -197,6 +197,28 @@ def test_every_smax_scenario_builds(scenario: str) -> None:
     assert timestep.action_mask.shape == (spec.num_agents, spec.action_dim)
 
 
+@pytest.mark.parametrize("n", [3, 8, 40])
+def test_marine_teams_of_any_size_are_smaxs_own_construction(n: int) -> None:
+    """`smax:Nm` is N marines a side; for 3m and 8m it is exactly SMAX's own map."""
+    env = make_env(f"smax:{n}m")
+    assert env.spec.num_agents == n and env.spec.action_dim == 5 + n
+    state, timestep = env.reset(jax.random.key(0))
+    assert timestep.obs.shape == (n, env.spec.obs_dim)
+    _, after = env.step(jax.random.key(1), state, jnp.zeros((n,), jnp.int32))
+    assert after.obs.shape == timestep.obs.shape
+    if n in (3, 8):
+        from jaxmarl.environments.smax import map_name_to_scenario
+
+        from cmat.envs.jaxmarl_envs import marine_team
+
+        own, built = map_name_to_scenario(f"{n}m"), marine_team(n)
+        np.testing.assert_array_equal(built.unit_types, own.unit_types)
+        assert (built.num_allies, built.num_enemies, built.smacv2_position_generation,
+                built.smacv2_unit_type_generation) == (own.num_allies, own.num_enemies,
+                                                       own.smacv2_position_generation,
+                                                       own.smacv2_unit_type_generation)
+
+
 def test_smax_3m_spec() -> None:
     spec = make_env("smax:3m").spec
     shape = (spec.num_agents, spec.obs_dim, spec.action_dim, spec.max_episode_steps)
@@ -229,6 +251,8 @@ def test_agent_id_appends_identity(env_id: str) -> None:
         ("foo:bar", {}, "foo"),
         ("3m", {}, "3m"),
         ("smax:foo", {}, "foo"),
+        ("smax:0m", {}, "0m"),
+        ("smax:1000m", {}, "1000m"),
         ("mpe:simple_tag", {}, "simple_tag"),
         ("matrix:nope", {}, "nope"),
         ("smax:3m", {"bogus": 1}, "bogus"),

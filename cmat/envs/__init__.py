@@ -58,7 +58,8 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
     elif prefix == "smax":
         from cmat.envs import jaxmarl_envs
 
-        scenario = _choose("SMAX scenario", name, jaxmarl_envs.SMAX_SCENARIOS)
+        scenario = (name if jaxmarl_envs.MARINE_TEAM.fullmatch(name)
+                    else _choose("SMAX scenario", name, jaxmarl_envs.SMAX_SCENARIOS))
         factory = partial(jaxmarl_envs.SmaxEnv, scenario)
         options = jaxmarl_envs.SMAX_OPTIONS
     elif prefix == "mpe":

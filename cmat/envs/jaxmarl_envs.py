@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import inspect
 import io
+import re
 import sys
 from typing import Any, cast
 from unittest import mock
@@ -33,12 +34,30 @@ with (
     from jaxmarl.environments.mpe import SimpleSpreadMPE
     from jaxmarl.environments.multi_agent_env import MultiAgentEnv
     from jaxmarl.environments.smax import SMAX, HeuristicEnemySMAX, map_name_to_scenario
-    from jaxmarl.environments.smax.smax_env import MAP_NAME_TO_SCENARIO
+    from jaxmarl.environments.smax.smax_env import MAP_NAME_TO_SCENARIO, Scenario
 
     from cmat.envs import smax_healer
 
 SMAX_SCENARIOS = (*MAP_NAME_TO_SCENARIO, *smax_healer.SCENARIOS)
 """Every scenario JaxMARL's SMAX defines, and the healer scenarios of `cmat.envs.smax_healer`."""
+
+MARINE_TEAM = re.compile(r"([1-9][0-9]{0,2})m")
+"""`Nm` beyond SMAX's own maps: N marines against N (N ≤ 999), built with SMAX's scenario API
+as its 3m, 8m and 25m are, e.g. for measuring how training scales with the team
+(benchmarks/agent_scaling.py)."""
+
+
+def smax_scenario(name: str) -> Any:
+    """SMAX's scenario `name`, or a marine team `Nm` (`MARINE_TEAM`); None for neither."""
+    if name in MAP_NAME_TO_SCENARIO:
+        return map_name_to_scenario(name)
+    match = MARINE_TEAM.fullmatch(name)
+    return None if match is None else marine_team(int(match.group(1)))
+
+
+def marine_team(n: int) -> Any:
+    """N marines (SMAX unit type 0) against N, as SMAX builds 3m, 8m and 25m."""
+    return Scenario(jnp.zeros((2 * n,), dtype=jnp.uint8), n, n, False, False)
 
 _SMAX_FIXED = {
     "env_kwargs", "scenario", "num_allies", "num_enemies", "action_type",
@@ -161,7 +180,7 @@ class SmaxEnv(JaxMarlEnv):
                 scenario=smax_healer.SCENARIOS[scenario], **kwargs
             )
         else:
-            env = HeuristicEnemySMAX(scenario=map_name_to_scenario(scenario), **kwargs)
+            env = HeuristicEnemySMAX(scenario=smax_scenario(scenario), **kwargs)
         super().__init__(f"smax:{scenario}", env, has_win_rate=True, has_global_state=True)
 
     def _action_mask(self, state: Any) -> jax.Array:
