@@ -45,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     train = commands.add_parser("train", help="train a new run or resume one")
-    train.add_argument("--env", help="environment id (matrix:NAME, smax:SCENARIO, mpe:NAME; "
+    train.add_argument("--env", help="environment id (matrix:NAME, smax:SCENARIO, mpe:NAME, "
+                       "jumanji:TASK, mabrax:TASK; "
                        "host: mamujoco:SCENARIO-CONF, grf:SCENARIO, "
                        "pettingzoo:package.module:factory)")
     train.add_argument("--algo", help="algorithm (default cmat)")

@@ -150,13 +150,14 @@ class TrainConfig:
     """One training run: environment, budget, seeds, network and PPO settings."""
 
     env: str = "matrix:fig1"
-    """Environment id: matrix:NAME, smax:SCENARIO or mpe:NAME (in-graph), or a host environment:
-    pettingzoo:package.module:factory, mamujoco:SCENARIO-CONF or grf:SCENARIO."""
+    """Environment id: matrix:NAME, smax:SCENARIO, mpe:NAME, jumanji:TASK (RWARE, LBF) or
+    mabrax:TASK (in-graph), or a host environment: pettingzoo:package.module:factory,
+    mamujoco:SCENARIO-CONF or grf:SCENARIO."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
     algo: str = "cmat"
     """One of the registry's algorithms (`cmat.algorithms.ALGORITHM_CLASSES`): cmat, mat,
-    pmat, triple_bert, happo, mappo."""
+    pmat, triple_bert, happo, mappo, sable."""
     total_steps: int = 200_000
     """Environment steps per seed (one step = one joint action in one environment)."""
     num_envs: int = 32

@@ -17,7 +17,8 @@ from cmat.resolve import load_config, resolve_config
 IDS = {
     "matrix": "matrix:penalty", "smax": "smax:2s3z", "mpe": "mpe:simple_spread",
     "mamujoco": "mamujoco:Ant-4x2", "grf": "grf:academy_counterattack_easy",
-    "pettingzoo": "pettingzoo:my_pkg.envs:make_env",
+    "pettingzoo": "pettingzoo:my_pkg.envs:make_env", "jumanji": "jumanji:rware-tiny-2ag",
+    "mabrax": "mabrax:hopper_3x1",
 }
 
 

@@ -24,6 +24,7 @@ ALGORITHM_CLASSES = (
     "cmat.algorithms.triple_bert:TripleBERT",
     "cmat.algorithms.happo:HAPPO",
     "cmat.algorithms.mappo:MAPPO",
+    "cmat.algorithms.sable:Sable",
 )
 """Where each algorithm's class lives, in the order `cmat config` and error messages list them."""
 

@@ -34,11 +34,13 @@ from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution
 from cmat.networks.mat import MATNetwork, MATOutput
+from cmat.networks.sable import SableNetwork
 
 
 @dataclass(frozen=True)
 class MAT(PPOAlgorithm):
-    network: MATNetwork
+    network: MATNetwork | SableNetwork
+    """The encoder-decoder: MAT's, or Sable's with the same methods (`cmat.algorithms.sable`)."""
     per_agent_gae: bool = False
     """Values are per agent ([n], `ppo.per_agent_gae`), else their team mean ([])."""
 
@@ -82,7 +84,7 @@ class MAT(PPOAlgorithm):
     def encode(self, params: Params, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Ô and the per-agent values V(ô_i)."""
         return cast(
-            tuple[jax.Array, jax.Array], self.network.apply(params, obs, method=MATNetwork.encode)
+            tuple[jax.Array, jax.Array], self.network.apply(params, obs, method="encode")
         )
 
     def decode(
@@ -96,7 +98,7 @@ class MAT(PPOAlgorithm):
         """Autoregressive actions along `order` and their per-agent log-probs."""
         return cast(
             tuple[jax.Array, jax.Array],
-            self.network.apply(params, encoded, action_mask, order, key, method=MATNetwork.decode),
+            self.network.apply(params, encoded, action_mask, order, key, method="decode"),
         )
 
     def act(
@@ -121,7 +123,7 @@ class MAT(PPOAlgorithm):
         """[n] per-agent values V(ô_i) with per-agent GAE, else V(O) = their mean."""
         if self.per_agent_gae:
             return self.encode(params, obs)[1]
-        return cast(jax.Array, self.network.apply(params, obs, method=MATNetwork.value))
+        return cast(jax.Array, self.network.apply(params, obs, method="value"))
 
     def teacher_forced(self, params: Params, batch: Batch, orders: jax.Array) -> MATOutput:
         """Network outputs for every sample of the batch, decoded along orders [B, n]."""

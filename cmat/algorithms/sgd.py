@@ -8,6 +8,7 @@ restrict it (fine-tuning masks, HAPPO's per-agent phases) without this module kn
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import jax
@@ -28,9 +29,11 @@ TRAIN, FROZEN = "train", "frozen"
 def minibatch_sgd(
     loss: Loss, optimizer: optax.GradientTransformation, params: Params, opt_state: Any,
     batch: Batch, rng: jax.Array, ppo: PPOConfig,
+    epoch_batch: Callable[[Batch, jax.Array], Batch] | None = None,
 ) -> tuple[Params, Any, Metrics]:
     """`ppo.epochs` passes over `batch` [B, ...] in `ppo.num_minibatches` shuffled minibatches,
-    one optimiser step on `loss(params, minibatch, ppo)` each.
+    one optimiser step on `loss(params, minibatch, ppo)` each. With `epoch_batch`, each pass
+    runs over `epoch_batch(batch, key)` with a fresh key (Sable's agent shuffle).
 
     Returns the new parameters and optimiser state and the loss's metrics averaged over the
     steps, with `loss`, `grad_norm` (global norm before clipping) and the per-block gradient
@@ -54,13 +57,17 @@ def minibatch_sgd(
         return (optax.apply_updates(params, updates), opt_state), metrics
 
     def epoch(carry: tuple[Params, Any], key: jax.Array) -> tuple[tuple[Params, Any], Metrics]:
-        size = batch.advantages.shape[0]
+        passed = batch
+        if epoch_batch is not None:
+            key, batch_key = jax.random.split(key)
+            passed = epoch_batch(batch, batch_key)
+        size = passed.advantages.shape[0]
         order = jax.random.permutation(key, size)
         minibatches = jax.tree.map(
             lambda x: x[order].reshape(
                 ppo.num_minibatches, size // ppo.num_minibatches, *x.shape[1:]
             ),
-            batch,
+            passed,
         )
         return jax.lax.scan(minibatch_step, carry, minibatches)
 

@@ -6,6 +6,7 @@ Suites are imported on first use, so matrix games never pay for importing JaxMAR
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import inspect
 from collections.abc import Callable, Iterable
 from functools import partial
@@ -47,7 +48,8 @@ class AgentIdWrapper:
 
 
 def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
-    """Build `matrix:NAME`, `smax:SCENARIO` or `mpe:NAME`; `agent_id` appends one-hot agent ids."""
+    """Build `matrix:NAME`, `smax:SCENARIO`, `mpe:NAME`, `jumanji:TASK` or `mabrax:TASK`;
+    `agent_id` appends one-hot agent ids."""
     prefix, _, name = env_id.partition(":")
     factory: Callable[..., MarlEnv]
     if prefix == "matrix":
@@ -67,6 +69,21 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
 
         factory = jaxmarl_envs.MPE_ENVS[_choose("MPE environment", name, jaxmarl_envs.MPE_ENVS)]
         options = jaxmarl_envs.MPE_OPTIONS
+    elif prefix == "jumanji":
+        from cmat.envs import jumanji_envs
+
+        factory = jumanji_envs.TASKS[_choose("Jumanji task", name, jumanji_envs.TASKS)]
+        options = inspect.signature(factory).parameters
+    elif prefix == "mabrax":
+        if importlib.util.find_spec("brax") is None:
+            raise CmatError(
+                f"{env_id} needs brax, which is not installed: "
+                f"pip install 'cmat[mabrax]' (brax>=0.14.2,<0.15)"
+            )
+        from cmat.envs import mabrax_envs
+
+        factory = partial(mabrax_envs.MabraxEnv, _choose("MABrax task", name, mabrax_envs.TASKS))
+        options = mabrax_envs.OPTIONS
     elif prefix in HOST_PREFIXES:
         raise CmatError(
             f"{env_id} is a host environment: build it with cmat.envs.host.make_host_env "

@@ -29,6 +29,24 @@ SMAC_SETTINGS: dict[str, Any] = {
 }
 """MAT's SMAC column: 32 rollout threads × 100 steps, 15 epochs, one minibatch, lr 5e-4."""
 
+MAVA_BUDGET = 1220 * 128 * 16 * 2
+"""Env steps per seed of Mava's default run (4,997,120): `num_updates` 1220 × `rollout_length`
+128 × `num_envs` 16 × `update_batch_size` 2 (instadeepai/Mava `mava/configs/system/ppo/
+ff_mappo.yaml` at 7d77035, `mava/configs/arch/anakin.yaml` at 0258bb8)."""
+
+MAVA_SETTINGS: dict[str, Any] = {
+    "rollout_length": 128, "num_envs": 32, "total_steps": MAVA_BUDGET,
+    "env_kwargs": {"agent_id": True},
+    "ppo": {"lr": 2.5e-4, "adam_eps": 1e-5, "epochs": 4, "num_minibatches": 2, "clip_eps": 0.2,
+            "ent_coef": 0.01, "value_coef": 0.5, "max_grad_norm": 0.5, "gamma": 0.99,
+            "gae_lambda": 0.95},
+}
+"""Mava's PPO defaults, the same in its system configs `ppo/ff_mappo.yaml` (7d77035) and
+`sable/ff_sable.yaml` (b53e2de), which it uses for RWARE, LBF and MABrax alike:
+lr 2.5e-4 (Adam, eps 1e-5), 128 steps, 4 epochs of 2 minibatches, clip 0.2, entropy 0.01, value
+coefficient 0.5, gradient norm 0.5; 16 envs × `update_batch_size` 2, whose gradients Mava
+averages, are 32 envs here; agent ids on (`add_agent_id: True`)."""
+
 
 @dataclass(frozen=True)
 class Suite:
@@ -51,6 +69,10 @@ SUITES: dict[str, Suite] = {
                   "MAT's SMAC scripts; the paper's 1e7 steps"),
     "mpe": Suite({**SMAC_SETTINGS, "total_steps": PAPER_BUDGET},
                  "no MAT reference for MPE: its SMAC settings; the paper's 1e7 steps"),
+    "jumanji": Suite(MAVA_SETTINGS,
+                     "Mava's ff_mappo/ff_sable defaults for Jumanji RWARE and LBF; its budget"),
+    "mabrax": Suite(MAVA_SETTINGS,
+                    "Mava's ff_mappo/ff_sable defaults, which it runs MABrax with; its budget"),
     "mamujoco": Suite(
         {"num_envs": 40, "rollout_length": 100, "total_steps": PAPER_BUDGET, "eval_episodes": 8,
          "env_kwargs": {"agent_id": True},
