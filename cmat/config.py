@@ -69,6 +69,18 @@ class NetworkConfig:
     `activate`, mat/algorithms/mat/algorithm/ma_transformer.py): the action and value output
     layers, the query, key, value and output projections of every attention and the second
     layer of every feed-forward block. Layers followed by an activation keep the ReLU gain √2."""
+    recurrent: bool = False
+    """Sable only: carry the retention states across the steps of an episode (Mava's
+    rec_sable: decayed by κ each step, reset at episode starts, the timestep's sinusoidal
+    encoding added to every retention's inputs) and train on whole rollout sequences from the
+    state each began with. False: the feed-forward ff_sable, every step on its own."""
+    retention_decay: float = 0.8
+    """Sable with `recurrent`: scale in [0, 1] of every head's decay κ (Mava's
+    `decay_scaling_factor`, mava/configs/network/rec_retention.yaml)."""
+    retention_chunk: int | None = None
+    """Sable with `recurrent`: timesteps per chunk of the chunkwise training pass, a divisor of
+    rollout_length (memory O(chunk²) instead of O(rollout_length²)); None: the whole rollout in
+    one parallel pass (Mava's default)."""
     log_std_init: float = 1.0
     """Initial learned log-std of continuous heads; std = sigmoid(log_std) · 0.5, so 1 starts
     at std ≈ 0.37 (the reference MAT Decoder's `torch.ones(action_dim)`)."""
@@ -263,6 +275,16 @@ def validate(config: TrainConfig) -> TrainConfig:
         (net.consensus_source in CONSENSUS_SOURCES,
          f"network.consensus_source must be one of {CONSENSUS_SOURCES}, "
          f"got {net.consensus_source!r}"),
+        (0.0 <= net.retention_decay <= 1.0,
+         f"network.retention_decay must be in [0, 1], got {net.retention_decay}"),
+        (net.retention_chunk is None or (net.retention_chunk > 0
+                                         and config.rollout_length % net.retention_chunk == 0),
+         f"network.retention_chunk ({net.retention_chunk}) must divide rollout_length "
+         f"({config.rollout_length})"),
+        (not net.recurrent or config.num_envs % ppo.num_minibatches == 0,
+         f"with network.recurrent, minibatches are whole sequences: num_envs "
+         f"({config.num_envs}) must be divisible by ppo.num_minibatches "
+         f"({ppo.num_minibatches})"),
         (ppo.epochs > 0, f"ppo.epochs must be > 0, got {ppo.epochs}"),
         (ppo.num_minibatches > 0, f"ppo.num_minibatches must be > 0, got {ppo.num_minibatches}"),
         (config.steps_per_update % ppo.num_minibatches == 0,

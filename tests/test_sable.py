@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -11,6 +12,7 @@ import pytest
 
 from cmat.algorithms.base import Batch
 from cmat.algorithms.sable import Sable, permute_agents
+from cmat.cli import main
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
@@ -22,6 +24,8 @@ from cmat.networks.retention import (
 )
 from cmat.networks.sable import SableNetwork
 from cmat.resolve import load_config
+from cmat.runners import trainer as trainer_lib
+from cmat.runners.learner import make_batch
 
 STEPS, AGENTS, HEAD, ACTIONS, OBS_DIM = 6, 3, 4, 5, 7
 STARTS = jnp.array([False, True, False, False, True, False])
@@ -148,11 +152,12 @@ def test_acting_step_by_step_equals_the_teacher_forced_sequence(memory: bool) ->
         actions.append(acted)
         log_probs.append(log_prob)
         values.append(value)
-    logits, forced_values, final = network.apply(
+    output, final = network.apply(
         params, obs, masks, jnp.stack(actions), memory_state, starts, positions,
         method="sequence",
     )
-    forced = jax.nn.log_softmax(logits)
+    forced_values = output.agent_values
+    forced = jax.nn.log_softmax(output.action_params)
     forced_log_probs = jnp.take_along_axis(forced, jnp.stack(actions)[..., None], -1)[..., 0]
     np.testing.assert_allclose(forced_log_probs, jnp.stack(log_probs), atol=1e-4)
     np.testing.assert_allclose(forced_values, jnp.stack(values), atol=1e-4)
@@ -239,3 +244,79 @@ def test_sable_reaches_the_fig1_optimum_in_at_least_9_of_10_seeds() -> None:
     ])
     at_optimum, joint = train_and_count_optimum(config)
     assert at_optimum >= 9, joint
+
+
+RECURRENT = [
+    "algo=sable", "network.recurrent=true", "network.n_embd=16", "env=mpe:simple_spread",
+    "env_kwargs.max_steps=4", "num_envs=4", "rollout_length=12", "ppo.num_minibatches=2",
+]
+"""Episodes of 5 steps, so a 12-step rollout holds episode ends and starts mid-sequence."""
+
+
+@pytest.fixture(scope="module")
+def recurrent_rollouts() -> tuple:
+    """A recurrent Sable setup, its first state and two consecutive rollouts (the second
+    starts from a state the first left)."""
+    setup = trainer_lib.build_setup(load_config(overrides=RECURRENT))
+    state = jax.jit(lambda key: trainer_lib.init_state(setup, key))(jax.random.PRNGKey(0))
+    collect = jax.jit(setup.collector.collect)
+    envs, first = collect(state.learner.params, state.envs, jax.random.PRNGKey(1))
+    envs, second = collect(state.learner.params, envs, jax.random.PRNGKey(2))
+    return setup, state.learner, first, second
+
+
+def test_acting_resets_the_state_exactly_at_an_episode_start() -> None:
+    setup = trainer_lib.build_setup(load_config(overrides=RECURRENT))
+    algorithm = setup.learner.algorithm
+    obs = jax.random.normal(jax.random.PRNGKey(3), (3, setup.spec.obs_dim))
+    mask = jnp.ones((3, setup.spec.action_dim), bool)
+    params = algorithm.init(jax.random.PRNGKey(4), obs, mask)
+    fresh = algorithm.initial_memory()
+    used = jax.tree.map(lambda x: x + jax.random.normal(jax.random.PRNGKey(5), x.shape), fresh)
+    used = used._replace(position=jnp.array(7))
+    act = jax.jit(algorithm.act_with_memory)
+    key, state = jax.random.PRNGKey(6), jnp.zeros(0)
+    at_start = [act(params, memory, obs, mask, key, state, jnp.array(True))
+                for memory in (fresh, used)]
+    within = [act(params, memory, obs, mask, key, state, jnp.array(False))
+              for memory in (fresh, used)]
+    for a, b in zip(jax.tree.leaves(at_start[0]), jax.tree.leaves(at_start[1]), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert int(at_start[1][1].position) == 0 and int(within[1][1].position) == 8
+    assert not np.allclose(within[0][0].value, within[1][0].value)
+
+
+def test_training_pass_over_collected_sequences_reproduces_acting(
+    recurrent_rollouts: tuple,
+) -> None:
+    """From the state stored before each rollout, the learner's values and the loss's
+    teacher-forced log-probs equal those acting computed step by step, across episode ends."""
+    setup, learner, *rollouts = recurrent_rollouts
+    algorithm = setup.learner.algorithm
+    for rollout in rollouts:
+        steps = rollout.steps
+        assert bool(jnp.any(steps.start[1:])) and bool(jnp.any(~steps.start[1:]))
+        _, batch = jax.jit(lambda r: make_batch(setup.learner, learner, r))(rollout)
+        assert batch.obs.shape[:2] == (4, 12) and batch.starts.shape == (4, 12)
+        values = jax.vmap(algorithm.sequence_values, in_axes=(None, 0, 1, 1, 1), out_axes=1)(
+            learner.params, rollout.memory, steps.obs, steps.global_state, steps.start
+        )
+        np.testing.assert_allclose(values, steps.value, atol=1e-4)
+        output = jax.jit(algorithm.sequence_outputs)(learner.params, batch)
+        forced = jax.nn.log_softmax(output.action_params)
+        actions = batch.actions.reshape(-1, batch.actions.shape[-1])
+        log_probs = jnp.take_along_axis(forced, actions[..., None], -1)[..., 0]
+        np.testing.assert_allclose(
+            log_probs, batch.log_probs.reshape(log_probs.shape), atol=1e-4
+        )
+    assert not np.allclose(jax.tree.leaves(rollouts[1].memory)[0], 0.0)
+
+
+def test_recurrent_sable_trains_and_resumes_through_the_cli(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    args = ["train", "--out", str(out), "--steps", "96", "--set", *RECURRENT[1:],
+            "log_interval=1", "--algo", "sable"]
+    assert main(args) == 0
+    assert main(["train", "--resume", str(out), "--steps", "144"]) == 0
+    rows = (out / "metrics.csv").read_text().splitlines()
+    assert rows[-1].split(",")[2] == "144"

@@ -33,6 +33,7 @@ OPTION_CAPABILITIES = {
     "ppo.joint_clip": ("joint_ratio", "joint"),
     "ppo.entropy_reduction": ("joint_ratio", "mean"),
     "ppo.per_agent_gae": ("per_agent_values", False),
+    "network.recurrent": ("recurrent", False),
 }
 """Options only some algorithms have: field -> (the capability it needs, the value every
 algorithm accepts)."""

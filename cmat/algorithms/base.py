@@ -43,6 +43,11 @@ class Batch(NamedTuple):
     global_state: Any = None
     """[B, state_dim] the environment's global state (state_dim 0 where it has none); None:
     none given (a critic that needs one raises)"""
+    starts: Any = None
+    """Recurrent algorithms only ([B, T]): the step's observation begins an episode. Their
+    batches are B sequences of T steps ([B, T, ...] in every field above)."""
+    memory: Any = ()
+    """Recurrent algorithms only ([B, ...]): the state each sequence starts from."""
 
 
 Loss = Callable[[Params, Batch, PPOConfig], tuple[jax.Array, dict[str, jax.Array]]]
@@ -107,6 +112,40 @@ class Algorithm(Protocol):
     ) -> ActResult: ...
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array: ...
+
+    @property
+    def recurrent(self) -> bool:
+        """Acting carries a state across the steps of an episode (`initial_memory`,
+        `act_with_memory`); the learner then hands `loss` whole sequences and their first
+        states, values come from `sequence_values`."""
+        ...
+
+    def initial_memory(self) -> Any:
+        """One team's state before its first step (() for feed-forward algorithms)."""
+        ...
+
+    def act_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        key: jax.Array, global_state: jax.Array, start: jax.Array,
+    ) -> tuple[ActResult, Any]:
+        """`act` from `memory`, the state after the previous step; `start` [] says `obs`
+        begins an episode (the state is reset first). Returns the new state too."""
+        ...
+
+    def greedy_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        start: jax.Array,
+    ) -> tuple[jax.Array, Any]:
+        """`greedy` from `memory` (as `act_with_memory`); returns the new state too."""
+        ...
+
+    def sequence_values(
+        self, params: Params, memory: Any, obs: jax.Array, global_state: jax.Array,
+        starts: jax.Array,
+    ) -> jax.Array:
+        """Values [T] or [T, n] of T consecutive steps of one environment (obs [T, n, obs_dim],
+        global_state [T, state_dim], starts [T]) from the state `memory` before them."""
+        ...
 
     def value(
         self, params: Params, obs: jax.Array, global_state: jax.Array | None = None

@@ -109,6 +109,13 @@ class MAT(PPOAlgorithm):
         else the team mean, with the per-agent values in `extras` for the value loss."""
         encoded, agent_values = self.encode(params, obs)
         actions, log_probs = self.decode(params, encoded, action_mask, self.identity, key)
+        return self.acted(actions, log_probs, agent_values)
+
+    def acted(
+        self, actions: jax.Array, log_probs: jax.Array, agent_values: jax.Array
+    ) -> ActResult:
+        """What acting returns: the values [n] per agent with per-agent GAE, else their team
+        mean with the per-agent values in `extras` for the value loss."""
         if self.per_agent_gae:
             return ActResult(actions, log_probs, agent_values)
         return ActResult(actions, log_probs, jnp.mean(agent_values), agent_values)
@@ -148,6 +155,15 @@ class MAT(PPOAlgorithm):
         regressed on its target (per agent, or the team's) around its collecting-time value
         [B, n]; means over active agents with `ppo.active_masks`. Also returns the outputs."""
         output = self.teacher_forced(params, batch, orders)
+        total, metrics = self.objective(output, batch, old_agent_values, ppo)
+        return total, metrics, output
+
+    def objective(
+        self, output: MATOutput, batch: Batch, old_agent_values: jax.Array, ppo: PPOConfig
+    ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """Eq. mat on the network's outputs [B, n, ...] for the batch's samples: per-agent
+        clipped surrogates, mean entropy, per-agent value losses around old_agent_values
+        [B, n]; the total loss and its metrics."""
         distribution = action_distribution(
             output.action_params, output.log_std, self.network.discrete
         )
@@ -171,7 +187,7 @@ class MAT(PPOAlgorithm):
                 log_ratio, jnp.sum(log_ratio, axis=-1), ppo.clip_eps, entropies, batch.alive
             ),
         }
-        return total, metrics, output
+        return total, metrics
 
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig

@@ -19,46 +19,94 @@ Sable and the other methods collect the same batches; the reference's 128 steps 
 vectorised updates per device is the same 4,096-sample batch split into two gradient steps.
 Continuous actions use cmat's Gaussian head (MAT's), not the reference's tanh-squashed Normal.
 
-This module is the feed-forward variant (`ff_sable`): no memory across timesteps.
+`network.recurrent` selects the recurrent variant (`rec_sable`, mava/systems/sable/anakin/
+rec_sable.py): the retention states are carried from step to step of an episode (decayed by κ,
+reset at episode starts, `SableCarry`), the timestep within the episode is encoded into every
+retention, and the update trains on whole rollout sequences of each environment, from the
+state it had before the rollout: minibatches are sets of environments, the chunkwise form of
+retention computes each sequence (`network.retention_chunk`). Agents are permuted per epoch in
+both variants, as in both references (the carried state stays the one acting produced).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple, cast
 
 import jax
+import jax.numpy as jnp
 import optax
 
-from cmat.algorithms.base import Batch, Params
+from cmat.algorithms.base import ActResult, Batch, Params
 from cmat.algorithms.mat import MAT
 from cmat.algorithms.ppo import normalize
 from cmat.algorithms.sgd import Metrics, minibatch_sgd
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.sable import SableNetwork
+from cmat.networks.mat import MATOutput
+from cmat.networks.sable import SableMemory, SableNetwork, empty_memory
+
+
+class SableCarry(NamedTuple):
+    """A team's recurrent state between steps."""
+
+    memory: SableMemory
+    position: jax.Array
+    """[] int32: the index within its episode of the last step acted (-1 before the first)."""
+
+
+def step_positions(last: jax.Array, starts: jax.Array) -> jax.Array:
+    """Indices [T] within their episodes of T steps after one at index `last` [] (starts [T]:
+    the step begins an episode)."""
+
+    def advance(previous: jax.Array, start: jax.Array) -> tuple[jax.Array, jax.Array]:
+        position = jnp.where(start, 0, previous + 1)
+        return position, position
+
+    return jax.lax.scan(advance, last, starts)[1]
 
 
 def permute_agents(batch: Batch, key: jax.Array) -> Batch:
-    """`batch` with its agents [B, n, ...] in one random order (the same for every sample):
+    """`batch` with its agents in one random order (the same for every sample and step):
     observations, masks, actions, log-probs, activity, stored extras and the per-agent values,
-    advantages and targets; team quantities [B] and the global state as they are."""
-    num_agents = batch.obs.shape[1]
-    order = jax.random.permutation(key, num_agents)
+    advantages and targets ([..., n] after the sample axes: [B] or, for sequences, [B, T]);
+    team quantities, the global state, episode starts and carried states as they are."""
+    axis = batch.obs.ndim - 2
+    order = jax.random.permutation(key, batch.obs.shape[axis])
+
+    def permuted(x: jax.Array) -> jax.Array:
+        return jnp.take(x, order, axis=axis)
 
     def per_agent(x: jax.Array) -> jax.Array:
-        return x[:, order] if x.ndim >= 2 else x
+        return permuted(x) if x.ndim > axis else x
 
     return batch._replace(
-        obs=batch.obs[:, order],
-        action_mask=batch.action_mask[:, order],
-        actions=batch.actions[:, order],
-        log_probs=batch.log_probs[:, order],
+        obs=permuted(batch.obs),
+        action_mask=permuted(batch.action_mask),
+        actions=permuted(batch.actions),
+        log_probs=permuted(batch.log_probs),
         values=per_agent(batch.values),
         advantages=per_agent(batch.advantages),
         targets=per_agent(batch.targets),
         extras=jax.tree.map(per_agent, batch.extras),
-        alive=None if batch.alive is None else batch.alive[:, order],
+        alive=None if batch.alive is None else permuted(batch.alive),
+    )
+
+
+def flatten_sequences(batch: Batch) -> Batch:
+    """A batch of B sequences of T steps as B·T samples (starts and carried states dropped)."""
+
+    def flat(x: jax.Array) -> jax.Array:
+        return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
+
+    return batch._replace(
+        obs=flat(batch.obs), action_mask=flat(batch.action_mask), actions=flat(batch.actions),
+        log_probs=flat(batch.log_probs), values=flat(batch.values),
+        advantages=flat(batch.advantages), targets=flat(batch.targets),
+        extras=jax.tree.map(flat, batch.extras),
+        alive=None if batch.alive is None else flat(batch.alive),
+        global_state=None if batch.global_state is None else flat(batch.global_state),
+        starts=None, memory=(),
     )
 
 
@@ -69,9 +117,12 @@ class Sable(MAT):
     """Permute the agents anew every epoch (the reference's `agent_perm`)."""
 
     name: ClassVar[str] = "sable"
-    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
-    network_fields: ClassVar[tuple[str, ...]] = ("n_embd", "n_head", "n_block", "log_std_init")
-    """The retention encoder-decoder's sizes (SableNetwork)."""
+    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values", "recurrent"})
+    network_fields: ClassVar[tuple[str, ...]] = (
+        "n_embd", "n_head", "n_block", "log_std_init", "recurrent", "retention_decay",
+        "retention_chunk",
+    )
+    """The retention encoder-decoder's sizes and its memory (SableNetwork)."""
 
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
 
@@ -90,15 +141,107 @@ class Sable(MAT):
         cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
     ) -> Sable:
         ppo = ppo if ppo is not None else PPOConfig()
-        network = SableNetwork(config, spec.num_agents, spec.action_dim, spec.discrete)
+        network = SableNetwork(
+            config, spec.num_agents, spec.action_dim, spec.discrete, memory=config.recurrent,
+            decay_scale=config.retention_decay, chunk_steps=config.retention_chunk,
+        )
         return cls(network, ppo.per_agent_gae)
+
+    @property
+    def recurrent(self) -> bool:
+        return self.network.memory
+
+    def initial_memory(self) -> Any:
+        """`SableCarry` with empty states (recurrent), else ()."""
+        if not self.recurrent:
+            return ()
+        return SableCarry(empty_memory(self.network.config), jnp.array(-1, jnp.int32))
+
+    def act_step(
+        self, params: Params, carry: SableCarry, obs: jax.Array, action_mask: jax.Array,
+        key: jax.Array | None, start: jax.Array,
+    ) -> tuple[jax.Array, jax.Array, jax.Array, SableCarry]:
+        """One step from `carry`: actions, log-probs and values [n], and the new carry."""
+        position = jnp.where(start, 0, carry.position + 1)
+        actions, log_probs, values, memory = cast(
+            tuple[jax.Array, jax.Array, jax.Array, SableMemory],
+            self.network.apply(
+                params, obs, action_mask, self.identity, key, carry.memory, start, position,
+                method="act_step",
+            ),
+        )
+        return actions, log_probs, values, SableCarry(memory, position)
+
+    def act_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        key: jax.Array, global_state: jax.Array, start: jax.Array,
+    ) -> tuple[ActResult, Any]:
+        if not self.recurrent:
+            return super().act_with_memory(
+                params, memory, obs, action_mask, key, global_state, start
+            )
+        actions, log_probs, values, carry = self.act_step(
+            params, memory, obs, action_mask, key, start
+        )
+        return self.acted(actions, log_probs, values), carry
+
+    def greedy_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        start: jax.Array,
+    ) -> tuple[jax.Array, Any]:
+        if not self.recurrent:
+            return super().greedy_with_memory(params, memory, obs, action_mask, start)
+        actions, _, _, carry = self.act_step(params, memory, obs, action_mask, None, start)
+        return actions, carry
+
+    def sequence_values(
+        self, params: Params, memory: Any, obs: jax.Array, global_state: jax.Array,
+        starts: jax.Array,
+    ) -> jax.Array:
+        """Per-agent values [T, n] (their mean [T] without per-agent GAE) of one environment's
+        steps, encoded from the carried state."""
+        if not self.recurrent:
+            return super().sequence_values(params, memory, obs, global_state, starts)
+        carry = cast(SableCarry, memory)
+        _, values, _ = cast(tuple[jax.Array, jax.Array, jax.Array], self.network.apply(
+            params, obs, carry.memory, starts, step_positions(carry.position, starts),
+            method="encode_sequence",
+        ))
+        return values if self.per_agent_gae else jnp.mean(values, axis=-1)
+
+    def sequence_outputs(self, params: Params, batch: Batch) -> MATOutput:
+        """The training pass over each of the batch's sequences [B, T, ...] from its carried
+        state, flattened to [B·T, ...]."""
+
+        def one(obs: jax.Array, mask: jax.Array, actions: jax.Array, carry: SableCarry,
+                starts: jax.Array) -> MATOutput:
+            output, _ = self.network.apply(
+                params, obs, mask, actions, carry.memory, starts,
+                step_positions(carry.position, starts), method="sequence",
+            )
+            return cast(MATOutput, output)
+
+        out_axes = MATOutput._make((0, None, 0, 0))
+        outputs = jax.vmap(one, out_axes=out_axes)(
+            batch.obs, batch.action_mask, batch.actions, batch.memory, batch.starts
+        )
+        def flat(x: jax.Array) -> jax.Array:
+            return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
+
+        return MATOutput(flat(outputs.action_params), outputs.log_std,
+                         flat(outputs.agent_values), flat(outputs.encoded))
 
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
         """MAT's loss on the minibatch's advantages normalised over all its entries (the
-        reference normalises per minibatch)."""
-        return super().loss(params, batch._replace(advantages=normalize(batch.advantages)), ppo)
+        reference normalises per minibatch); recurrent: on its sequences' training pass."""
+        batch = batch._replace(advantages=normalize(batch.advantages))
+        if not self.recurrent:
+            return super().loss(params, batch, ppo)
+        output = self.sequence_outputs(params, batch)
+        flat = flatten_sequences(batch)
+        return self.objective(output, flat, self.collected_agent_values(flat, flat.extras), ppo)
 
     def update(
         self, optimizer: optax.GradientTransformation, params: Params, opt_state: Any,

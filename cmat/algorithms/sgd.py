@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from cmat.algorithms.base import Batch, Loss, Params
+from cmat.algorithms.base import ActResult, Batch, Loss, Params
 from cmat.algorithms.ppo import block_grad_norms
 from cmat.config import PPOConfig
 from cmat.errors import CmatError
@@ -124,6 +124,49 @@ class PPOAlgorithm:
     capabilities: ClassVar[frozenset[str]] = frozenset()
     reference_defaults: ClassVar[dict[str, Any]] = {}
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
+
+    @property
+    def recurrent(self) -> bool:
+        return False
+
+    def initial_memory(self) -> Any:
+        return ()
+
+    def act(
+        self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
+        global_state: jax.Array | None = None,
+    ) -> ActResult:
+        raise NotImplementedError
+
+    def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
+        raise NotImplementedError
+
+    def value(
+        self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
+    ) -> jax.Array:
+        raise NotImplementedError
+
+    def act_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        key: jax.Array, global_state: jax.Array, start: jax.Array,
+    ) -> tuple[ActResult, Any]:
+        """`act`, the (empty) memory unchanged."""
+        return self.act(params, obs, action_mask, key, global_state), memory
+
+    def greedy_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        start: jax.Array,
+    ) -> tuple[jax.Array, Any]:
+        """`greedy`, the (empty) memory unchanged."""
+        return self.greedy(params, obs, action_mask), memory
+
+    def sequence_values(
+        self, params: Params, memory: Any, obs: jax.Array, global_state: jax.Array,
+        starts: jax.Array,
+    ) -> jax.Array:
+        """`value` of every step on its own."""
+        values: jax.Array = jax.vmap(self.value, in_axes=(None, 0, 0))(params, obs, global_state)
+        return values
 
     def loss(self, params: Params, batch: Batch, ppo: PPOConfig) -> tuple[jax.Array, Metrics]:
         raise NotImplementedError

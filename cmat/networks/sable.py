@@ -43,6 +43,13 @@ class SableMemory(NamedTuple):
     """The decoder's retention from the agents' encodings to the action features."""
 
 
+def empty_memory(config: NetworkConfig) -> SableMemory:
+    """Sable's states before an episode's first step, [n_block, H, hs, hs] each."""
+    size = config.n_embd // config.n_head
+    empty = jnp.zeros((config.n_block, config.n_head, size, size))
+    return SableMemory(empty, empty, empty)
+
+
 class SwiGLU(nn.Module):
     """(swish(x W_gate) ⊙ x W_linear) W_output with every weight zero at initialisation, as the
     reference (mava/networks/torsos.py). All three gradients are then zero too, so the block
@@ -68,6 +75,8 @@ class Retention(nn.Module):
     causal: bool
     decay_scale: float
     timestep_encoding: bool
+    chunk_steps: int | None = None
+    """Timesteps per chunk of the training form (None: all at once)."""
 
     def setup(self) -> None:
         self.retention = MultiScaleRetention(
@@ -85,7 +94,7 @@ class Retention(nn.Module):
         """[T, N, d] query and key (the value is the key); positions [T]."""
         encoding = sinusoidal_encoding(positions, self.n_embd)[:, None, :]
         query, key = self.encode(query, encoding), self.encode(key, encoding)
-        return self.retention(query, key, key, state, starts)
+        return self.retention(query, key, key, state, starts, self.chunk_steps)
 
     def step(
         self, query: jax.Array, key: jax.Array, state: jax.Array, position: jax.Array
@@ -106,10 +115,12 @@ class SableEncodeBlock(nn.Module):
     n_head: int
     decay_scale: float
     timestep_encoding: bool
+    chunk_steps: int | None = None
 
     def setup(self) -> None:
         self.retention = Retention(
-            self.n_embd, self.n_head, False, self.decay_scale, self.timestep_encoding
+            self.n_embd, self.n_head, False, self.decay_scale, self.timestep_encoding,
+            self.chunk_steps,
         )
         self.norms = [nn.RMSNorm() for _ in range(2)]
         self.feed_forward = SwiGLU(self.n_embd)
@@ -140,13 +151,16 @@ class SableDecodeBlock(nn.Module):
     n_head: int
     decay_scale: float
     timestep_encoding: bool
+    chunk_steps: int | None = None
 
     def setup(self) -> None:
         self.token_retention = Retention(
-            self.n_embd, self.n_head, True, self.decay_scale, self.timestep_encoding
+            self.n_embd, self.n_head, True, self.decay_scale, self.timestep_encoding,
+            self.chunk_steps,
         )
         self.agent_retention = Retention(
-            self.n_embd, self.n_head, True, self.decay_scale, self.timestep_encoding
+            self.n_embd, self.n_head, True, self.decay_scale, self.timestep_encoding,
+            self.chunk_steps,
         )
         self.norms = [nn.RMSNorm() for _ in range(3)]
         self.feed_forward = SwiGLU(self.n_embd)
@@ -192,6 +206,8 @@ class SableNetwork(nn.Module):
     """Carry retention states across timesteps (rec_sable); False: ff_sable."""
     decay_scale: float = 0.8
     """Sable's `decay_scaling_factor` (memory only: without it no decay is ever applied)."""
+    chunk_steps: int | None = None
+    """Timesteps per chunk of the training pass over a sequence (None: all at once)."""
 
     def setup(self) -> None:
         cfg = self.config
@@ -202,7 +218,7 @@ class SableNetwork(nn.Module):
         )
         self.encoder_norm = nn.RMSNorm()
         self.encoder_blocks = [
-            SableEncodeBlock(d, cfg.n_head, self.decay_scale, self.memory)
+            SableEncodeBlock(d, cfg.n_head, self.decay_scale, self.memory, self.chunk_steps)
             for _ in range(cfg.n_block)
         ]
         self.value_hidden = dense(d)
@@ -213,7 +229,7 @@ class SableNetwork(nn.Module):
         )
         self.token_norm = nn.RMSNorm()
         self.decoder_blocks = [
-            SableDecodeBlock(d, cfg.n_head, self.decay_scale, self.memory)
+            SableDecodeBlock(d, cfg.n_head, self.decay_scale, self.memory, self.chunk_steps)
             for _ in range(cfg.n_block)
         ]
         self.head_hidden = dense(d)
@@ -226,10 +242,7 @@ class SableNetwork(nn.Module):
 
     def initial_memory(self) -> SableMemory:
         """Empty states, [n_block, H, hs, hs] each."""
-        cfg = self.config
-        size = cfg.n_embd // cfg.n_head
-        empty = jnp.zeros((cfg.n_block, cfg.n_head, size, size))
-        return SableMemory(empty, empty, empty)
+        return empty_memory(self.config)
 
     def embed_obs(self, obs: jax.Array) -> jax.Array:
         return nn.gelu(self.obs_embedding(self.obs_norm(obs)))
@@ -289,14 +302,16 @@ class SableNetwork(nn.Module):
     def sequence(
         self, obs: jax.Array, action_mask: jax.Array, actions: jax.Array, memory: SableMemory,
         starts: jax.Array, positions: jax.Array,
-    ) -> tuple[jax.Array, jax.Array, SableMemory]:
-        """The training pass over T timesteps: policy parameters [T, n, A], per-agent values
-        [T, n] and the memory after the last timestep."""
+    ) -> tuple[MATOutput, SableMemory]:
+        """The training pass over T timesteps, agents in index order: outputs with a leading
+        [T] axis (policy parameters [T, n, A], values [T, n], encodings [T, n, d]) and the
+        memory after the last timestep."""
         encoded, values, encoder_states = self.encode_sequence(obs, memory, starts, positions)
         params, token_states, cross_states = self.decode_sequence(
             encoded, action_mask, actions, memory, starts, positions
         )
-        return params, values, SableMemory(encoder_states, token_states, cross_states)
+        output = MATOutput(params, self.log_std, values, encoded)
+        return output, SableMemory(encoder_states, token_states, cross_states)
 
     def act_step(
         self, obs: jax.Array, action_mask: jax.Array, order: jax.Array, key: jax.Array | None,

@@ -87,7 +87,8 @@ sees them wrong; everything learned is restored exactly."""
 
 def state_to_bytes(state: TrainerState) -> bytes:
     """The checkpoint format of every cmat version: one flat map of the learner's fields and,
-    for in-graph runs, the environments' (`env_state`, `timestep`, `episode_return`)."""
+    for in-graph runs, the environments' (`env_state`, `timestep`, `episode_return`, and since
+    recurrent algorithms `memory`: empty for the others, and for checkpoints written before)."""
     fields: dict[str, Any] = dict(flax.serialization.to_state_dict(state.learner))
     if state.envs is not None:
         fields.update(flax.serialization.to_state_dict(state.envs))
@@ -121,7 +122,7 @@ def restore_state(
             template.learner, {name: raw[name] for name in learner_fields})
         restored_envs = None
         if template.envs is not None:
-            env_fields = {name: raw[name]
+            env_fields = {name: raw[name] if name in raw or name != "memory" else {}
                           for name in flax.serialization.to_state_dict(template.envs)}
             fill_added_timestep_fields(env_fields, template.envs)
             restored_envs = flax.serialization.from_state_dict(template.envs, env_fields)

@@ -28,6 +28,8 @@ class EnvsState:
     timestep: TimeStep
     episode_return: jax.Array
     """[envs] return so far of each environment's running episode."""
+    memory: Any = ()
+    """[envs, ...] a recurrent algorithm's state after the last step (() otherwise)."""
 
 
 @dataclass(frozen=True)
@@ -44,7 +46,11 @@ class InGraphCollector:
         the chunk program compiles once (SMAX's reset yields weakly typed leaves)."""
         env_state, timestep = jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs))
         env_state = jax.tree.map(lambda x: jnp.asarray(x, dtype=x.dtype), env_state)
-        return EnvsState(env_state, timestep, jnp.zeros(self.num_envs))
+        memory = jax.tree.map(
+            lambda x: jnp.broadcast_to(x, (self.num_envs, *jnp.shape(x))),
+            self.algorithm.initial_memory(),
+        )
+        return EnvsState(env_state, timestep, jnp.zeros(self.num_envs), memory)
 
     def collect(
         self, params: Params, envs: EnvsState, key: jax.Array
@@ -58,9 +64,10 @@ class InGraphCollector:
         def env_step(envs: EnvsState, key: jax.Array) -> tuple[EnvsState, Transition]:
             act_keys, step_keys = jnp.split(jax.random.split(key, 2 * num_envs), 2)
             observed = envs.timestep
-            acted = jax.vmap(self.algorithm.act, in_axes=(None, 0, 0, 0, 0))(
-                params, observed.obs, observed.action_mask, act_keys, observed.global_state
-            )
+            acted, memory = jax.vmap(
+                self.algorithm.act_with_memory, in_axes=(None, 0, 0, 0, 0, 0, 0)
+            )(params, envs.memory, observed.obs, observed.action_mask, act_keys,
+              observed.global_state, observed.done)
             env_state, timestep = jax.vmap(self.env.step)(
                 step_keys, envs.env_state, env_actions(spec, acted.actions)
             )
@@ -78,12 +85,14 @@ class InGraphCollector:
                 alive=observed.alive,
                 global_state=observed.global_state,
                 extras=acted.extras,
+                start=observed.done,
             )
-            envs = EnvsState(env_state, timestep, jnp.where(timestep.done, 0.0, running))
+            envs = EnvsState(env_state, timestep, jnp.where(timestep.done, 0.0, running), memory)
             return envs, transition
 
+        first_memory = envs.memory
         envs, steps = jax.lax.scan(env_step, envs, jax.random.split(key, self.rollout_length))
-        return envs, Rollout(steps, envs.timestep.obs, envs.timestep.global_state)
+        return envs, Rollout(steps, envs.timestep.obs, envs.timestep.global_state, first_memory)
 
 
 def env_actions(spec: EnvSpec, actions: jax.Array) -> jax.Array:

@@ -78,20 +78,27 @@ def evaluate_in_graph(
     spec = env.spec
     reset_key, rng = jax.random.split(rng)
     env_state, timestep = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
-    greedy = jax.vmap(algorithm.greedy, in_axes=(None, 0, 0))
+    greedy = jax.vmap(algorithm.greedy_with_memory, in_axes=(None, 0, 0, 0, 0))
+    memory = jax.tree.map(
+        lambda x: jnp.broadcast_to(x, (episodes, *jnp.shape(x))), algorithm.initial_memory()
+    )
     quota = jnp.ones(episodes, jnp.int32)
 
-    Carry = tuple[Any, TimeStep, EpisodeTally]
+    Carry = tuple[Any, TimeStep, EpisodeTally, Any]
 
     def step(carry: Carry, key: jax.Array) -> tuple[Carry, None]:
-        env_state, timestep, tally = carry
-        actions = env_actions(spec, greedy(params, timestep.obs, timestep.action_mask))
+        env_state, timestep, tally, memory = carry
+        actions, memory = greedy(
+            params, memory, timestep.obs, timestep.action_mask, timestep.done
+        )
         env_state, timestep = jax.vmap(env.step)(
-            jax.random.split(key, episodes), env_state, actions
+            jax.random.split(key, episodes), env_state, env_actions(spec, actions)
         )
         tally = tally_step(tally, timestep.reward, timestep.done, timestep.won, quota, jnp)
-        return (env_state, timestep, tally), None
+        return (env_state, timestep, tally, memory), None
 
-    carry = (env_state, timestep, tally_start((episodes,), jnp))
-    (_, _, tally), _ = jax.lax.scan(step, carry, jax.random.split(rng, spec.max_episode_steps))
+    carry = (env_state, timestep, tally_start((episodes,), jnp), memory)
+    (_, _, tally, _), _ = jax.lax.scan(
+        step, carry, jax.random.split(rng, spec.max_episode_steps)
+    )
     return tally_result(tally, quota, episodes, spec, jnp)

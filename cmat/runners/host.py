@@ -27,6 +27,7 @@ from cmat.config import TrainConfig
 from cmat.envs.host import default_workers, make_host_env
 from cmat.envs.host.pool import COUNTERS, InProcessPool, WorkerPool, make_pool
 from cmat.envs.host.protocol import HostBatch
+from cmat.errors import CmatError
 from cmat.runners.base import (
     EVAL_SEED_OFFSET,
     Trainer,
@@ -100,11 +101,17 @@ class HostTrainer:
         self.env_spec = probe.spec
         self._spare = [probe]  # becomes the first environment of an in-process pool
         self.learner_setup = build_learner(config, self.env_spec)
+        if self.learner_setup.algorithm.recurrent:
+            raise CmatError(
+                f"{config.algo} with network.recurrent=true carries a state across steps, which "
+                f"host environments ({config.env}) do not support yet; train it on an in-graph "
+                f"environment or with network.recurrent=false"
+            )
         self._init = jax.jit(partial(host_learner, self.learner_setup))
         self._policy = jax.jit(partial(policy_step, self.learner_setup))
         self._greedy = jax.jit(partial(greedy_step, self.learner_setup))
         self._learn = jax.jit(
-            jax.vmap(partial(learn, self.learner_setup), in_axes=(0, Rollout._make((1, 0, 0)))),
+            jax.vmap(partial(learn, self.learner_setup), in_axes=(0, Rollout._make((1, 0, 0, 0)))),
             donate_argnums=0,
         )
         self._summarise = jax.jit(jax.vmap(partial(summarise_updates, self.env_spec)))
@@ -180,8 +187,9 @@ class HostTrainer:
         for _ in range(self.config.rollout_length):
             obs = self._per_seed(timestep.obs)
             mask = self._per_seed(timestep.action_mask)
-            alive, global_state = (
-                self._per_seed(timestep.alive), self._per_seed(timestep.global_state)
+            alive, global_state, start = (
+                self._per_seed(timestep.alive), self._per_seed(timestep.global_state),
+                self._per_seed(timestep.done),
             )
             rng, acted, actions = self._policy(learner.params, rng, obs, mask, global_state)
             actions = np.asarray(actions)
@@ -189,11 +197,12 @@ class HostTrainer:
             reward, done = self._per_seed(timestep.reward), self._per_seed(timestep.done)
             running = running + reward
             steps.append((obs, mask, acted, reward, done, self._per_seed(timestep.won),
-                          np.where(done, running, 0.0).astype(np.float32), alive, global_state))
+                          np.where(done, running, 0.0).astype(np.float32), alive, global_state,
+                          start))
             running = np.where(done, 0.0, running).astype(np.float32)
         self._timestep, self._episode_return = timestep, running
         (obs_t, mask_t, acted_t, reward_t, done_t, won_t, finished_t, alive_t,
-         global_state_t) = zip(*steps, strict=True)
+         global_state_t, start_t) = zip(*steps, strict=True)
         acted = jax.tree.map(lambda *x: jnp.stack(x), *acted_t)
         transitions = Transition(
             obs=jnp.asarray(np.stack(obs_t)),
@@ -208,6 +217,7 @@ class HostTrainer:
             alive=jnp.asarray(np.stack(alive_t)),
             global_state=jnp.asarray(np.stack(global_state_t)),
             extras=acted.extras,
+            start=jnp.asarray(np.stack(start_t)),
         )
         rollout = Rollout(transitions, jnp.asarray(self._per_seed(timestep.obs)),
                           jnp.asarray(self._per_seed(timestep.global_state)))

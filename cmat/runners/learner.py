@@ -57,6 +57,9 @@ class Transition(NamedTuple):
     global_state: jax.Array
     """[state_dim] the environment's global state at `obs`."""
     extras: Any
+    start: jax.Array
+    """[] `obs` begins an episode (the step before ended one; False after the first reset,
+    where a recurrent algorithm's state is empty anyway)."""
 
 
 class Rollout(NamedTuple):
@@ -69,6 +72,8 @@ class Rollout(NamedTuple):
     """[envs, n, obs_dim]."""
     next_global_state: jax.Array
     """[envs, state_dim]."""
+    memory: Any = ()
+    """[envs, ...] a recurrent algorithm's state before the first step (() otherwise)."""
 
 
 @dataclass(frozen=True)
@@ -138,7 +143,9 @@ def value_to_returns_space(
 def make_batch(
     setup: LearnerSetup, learner: LearnerState, rollout: Rollout
 ) -> tuple[ppo_lib.ValueNormState, Batch]:
-    """GAE with the target critic V_φ- (Algorithm 1) and normalised value targets.
+    """GAE with the target critic V_φ- (Algorithm 1) and normalised value targets: a batch of
+    T·envs samples, or for a recurrent algorithm of `envs` sequences of T steps with the state
+    each starts from (values then come from its `sequence_values`).
 
     Team values [T, envs] give one advantage per step; per-agent values [T, envs, n] (MAT's
     per-agent GAE) give one per agent, from the shared team reward and episode ends. With
@@ -148,9 +155,14 @@ def make_batch(
     steps = rollout.steps
     all_obs = jnp.concatenate([steps.obs, rollout.next_obs[None]], axis=0)
     all_states = jnp.concatenate([steps.global_state, rollout.next_global_state[None]], axis=0)
-    target_values = value_to_returns_space(
-        setup, learner.value_norm, critic_values(setup, learner.target_params, all_obs, all_states)
-    )
+    if setup.algorithm.recurrent:
+        all_starts = jnp.concatenate([steps.start, steps.done[-1:]], axis=0)
+        values = jax.vmap(
+            setup.algorithm.sequence_values, in_axes=(None, 0, 1, 1, 1), out_axes=1
+        )(learner.target_params, rollout.memory, all_obs, all_states, all_starts)
+    else:
+        values = critic_values(setup, learner.target_params, all_obs, all_states)
+    target_values = value_to_returns_space(setup, learner.value_norm, values)
     agent_axes = target_values.ndim - steps.reward.ndim
     rewards = steps.reward.reshape(*steps.reward.shape, *(1,) * agent_axes)
     dones = steps.done.reshape(*steps.done.shape, *(1,) * agent_axes)
@@ -171,7 +183,11 @@ def make_batch(
         else:
             advantages = ppo_lib.normalize(advantages)
 
+    recurrent = setup.algorithm.recurrent
+
     def flat(x: jax.Array) -> jax.Array:
+        if recurrent:
+            return jnp.swapaxes(x, 0, 1)
         return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
 
     batch = Batch(
@@ -185,6 +201,8 @@ def make_batch(
         alive=flat(steps.alive),
         global_state=flat(steps.global_state),
         extras=jax.tree.map(flat, steps.extras),
+        starts=flat(steps.start) if recurrent else None,
+        memory=rollout.memory,
     )
     return value_norm, batch
 
