@@ -338,7 +338,7 @@ def test_only_runs_the_matching_runs_and_reports_every_complete_one(
 
 @pytest.mark.parametrize("name", ["paper_main.yaml", "paper_ablation.yaml", "smoke.yaml",
                                   "cmat_speed_study.yaml", "cmat_speed_study_long.yaml",
-                                  "cmat_speed_study_3s5z_long.yaml"])
+                                  "cmat_speed_study_3s5z_long.yaml", "sable_comparison.yaml"])
 def test_shipped_specs_plan(name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["experiment", str(REPO / "experiments" / name), "--out", str(tmp_path / "x"),
                  "--dry-run"]) == 0

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cmat.algorithms import algorithm_names
 from cmat.cli import main
 from cmat.envs import MarlEnv, TimeStep, make_env
 from cmat.envs.jumanji_envs import LBF_SCENARIOS, RWARE_SCENARIOS, TASKS, JumanjiEnv
@@ -284,15 +285,19 @@ TINY = ["num_envs=4", "rollout_length=16", "log_interval=2", "ppo.epochs=1",
         "ppo.num_minibatches=1", "eval_episodes=2", "env_kwargs.time_limit=16"]
 
 
+FAST_PAIRS = {("jumanji:rware-tiny-2ag", "mappo"), ("jumanji:lbf-2s-8x8-2p-2f-coop", "cmat"),
+              ("jumanji:lbf-2s-8x8-2p-2f-coop", "sable")}
+"""Run by CI; every other (task, algorithm) pair is `slow` (about 50 s each, nearly all of it
+compiling)."""
+
+
 @pytest.mark.parametrize(("env_id", "algo"), [
-    ("jumanji:rware-tiny-2ag", "mappo"),
-    ("jumanji:lbf-2s-8x8-2p-2f-coop", "cmat"),
-    pytest.param("jumanji:rware-tiny-2ag", "cmat", marks=pytest.mark.slow),
-    pytest.param("jumanji:lbf-2s-8x8-2p-2f-coop", "mappo", marks=pytest.mark.slow),
+    pytest.param(env_id, algo, marks=[] if (env_id, algo) in FAST_PAIRS else pytest.mark.slow)
+    for env_id in ("jumanji:rware-tiny-2ag", "jumanji:lbf-2s-8x8-2p-2f-coop")
+    for algo in algorithm_names()
 ])
 def test_cmat_train_end_to_end(env_id: str, algo: str, tmp_path: Path) -> None:
-    """A few updates of each algorithm on each suite (the other two pairings are `slow`: ~50 s
-    each, nearly all of it compiling)."""
+    """A few updates of every algorithm on each suite, through `cmat train`."""
     out = tmp_path / "run"
     argv = ["train", "--env", env_id, "--algo", algo, "--steps", "256", "--set", *TINY,
             "--out", str(out)]
@@ -307,4 +312,4 @@ def test_cmat_train_end_to_end(env_id: str, algo: str, tmp_path: Path) -> None:
     assert all(math.isfinite(float(r["policy_loss"])) for r in rows if r["kind"] == "train")
     config, sources = RunDir.open(out).config(), RunDir.open(out).sources()
     assert (config.algo, config.env_kwargs) == (algo, {"agent_id": True, "time_limit": 16})
-    assert sources["ppo.lr"] == "suite jumanji" and sources["env_kwargs"] == "command line"
+    assert sources["ppo.gae_lambda"] == "suite jumanji" and sources["env_kwargs"] == "command line"
