@@ -44,7 +44,8 @@ def test_config_with_an_unknown_algorithm_is_one_error(
 CHANGED_NETWORK_FIELDS = {
     "n_embd": 32, "n_head": 2, "n_block": 2, "compressor_heads": 2, "consensus_iterations": 1,
     "consensus_source": "last", "consensus_policy": "categorical", "consensus_codes": 4,
-    "latent_head_gain": 0.5, "init_gain": 0.5, "log_std_init": 0.0,
+    "latent_head_gain": 0.5, "init_gain": 0.5, "log_std_init": 0.0, "recurrent": True,
+    "retention_decay": 0.5, "retention_chunk": 1,
 }
 
 

@@ -285,8 +285,7 @@ TINY = ["num_envs=4", "rollout_length=16", "log_interval=2", "ppo.epochs=1",
         "ppo.num_minibatches=1", "eval_episodes=2", "env_kwargs.time_limit=16"]
 
 
-FAST_PAIRS = {("jumanji:rware-tiny-2ag", "mappo"), ("jumanji:lbf-2s-8x8-2p-2f-coop", "cmat"),
-              ("jumanji:lbf-2s-8x8-2p-2f-coop", "sable")}
+FAST_PAIRS = {("jumanji:rware-tiny-2ag", "mappo"), ("jumanji:lbf-2s-8x8-2p-2f-coop", "sable")}
 """Run by CI; every other (task, algorithm) pair is `slow` (about 50 s each, nearly all of it
 compiling)."""
 

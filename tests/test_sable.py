@@ -237,10 +237,11 @@ def test_sable_ppo_update_moves_the_parameters_and_keeps_swiglu_at_zero() -> Non
 
 
 def test_sable_reaches_the_fig1_optimum_in_at_least_9_of_10_seeds() -> None:
-    """Sable at its reference settings and the matrix suite's budget (4,000 steps); measured:
-    10 of 10 seeds."""
+    """Sable at its reference settings and half the matrix suite's budget (2,000 steps);
+    measured: 10 of 10 seeds at 2,000 and at 4,000."""
     config = load_config(overrides=[
-        "algo=sable", "env=matrix:fig1", "seeds=10", "log_interval=10", "eval_episodes=2",
+        "algo=sable", "env=matrix:fig1", "seeds=10", "total_steps=2000", "log_interval=5",
+        "eval_episodes=2",
     ])
     at_optimum, joint = train_and_count_optimum(config)
     assert at_optimum >= 9, joint
@@ -312,6 +313,7 @@ def test_training_pass_over_collected_sequences_reproduces_acting(
     assert not np.allclose(jax.tree.leaves(rollouts[1].memory)[0], 0.0)
 
 
+@pytest.mark.slow
 def test_recurrent_sable_trains_and_resumes_through_the_cli(tmp_path: Path) -> None:
     out = tmp_path / "run"
     args = ["train", "--out", str(out), "--steps", "96", "--set", *RECURRENT[1:],

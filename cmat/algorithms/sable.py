@@ -93,12 +93,13 @@ def permute_agents(batch: Batch, key: jax.Array) -> Batch:
     )
 
 
+def flat(x: jax.Array) -> jax.Array:
+    """[B, T, ...] -> [B·T, ...]."""
+    return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
+
+
 def flatten_sequences(batch: Batch) -> Batch:
     """A batch of B sequences of T steps as B·T samples (starts and carried states dropped)."""
-
-    def flat(x: jax.Array) -> jax.Array:
-        return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
-
     return batch._replace(
         obs=flat(batch.obs), action_mask=flat(batch.action_mask), actions=flat(batch.actions),
         log_probs=flat(batch.log_probs), values=flat(batch.values),
@@ -225,9 +226,6 @@ class Sable(MAT):
         outputs = jax.vmap(one, out_axes=out_axes)(
             batch.obs, batch.action_mask, batch.actions, batch.memory, batch.starts
         )
-        def flat(x: jax.Array) -> jax.Array:
-            return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
-
         return MATOutput(flat(outputs.action_params), outputs.log_std,
                          flat(outputs.agent_values), flat(outputs.encoded))
 

@@ -185,23 +185,24 @@ def make_batch(
 
     recurrent = setup.algorithm.recurrent
 
-    def flat(x: jax.Array) -> jax.Array:
+    def arrange(x: jax.Array) -> jax.Array:
+        """[T, envs, ...] -> samples [T·envs, ...], or sequences [envs, T, ...]."""
         if recurrent:
             return jnp.swapaxes(x, 0, 1)
         return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
 
     batch = Batch(
-        obs=flat(steps.obs),
-        action_mask=flat(steps.action_mask),
-        actions=flat(steps.actions),
-        log_probs=flat(steps.log_probs),
-        values=flat(steps.value),
-        advantages=flat(advantages),
-        targets=flat(targets),
-        alive=flat(steps.alive),
-        global_state=flat(steps.global_state),
-        extras=jax.tree.map(flat, steps.extras),
-        starts=flat(steps.start) if recurrent else None,
+        obs=arrange(steps.obs),
+        action_mask=arrange(steps.action_mask),
+        actions=arrange(steps.actions),
+        log_probs=arrange(steps.log_probs),
+        values=arrange(steps.value),
+        advantages=arrange(advantages),
+        targets=arrange(targets),
+        alive=arrange(steps.alive),
+        global_state=arrange(steps.global_state),
+        extras=jax.tree.map(arrange, steps.extras),
+        starts=arrange(steps.start) if recurrent else None,
         memory=rollout.memory,
     )
     return value_norm, batch
