@@ -27,6 +27,8 @@ METHODS: dict[str, list[str]] = {
     "triple_bert": ["algo=triple_bert"],
     "mappo": ["algo=mappo"],
     "happo": ["algo=happo"],
+    "sable": ["algo=sable"],
+    "sable-recurrent": ["algo=sable", "network.recurrent=true"],
 }
 """Method label -> config overrides."""
 
