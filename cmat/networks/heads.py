@@ -105,6 +105,20 @@ def action_distribution(
     return distrax.Independent(distrax.Normal(action_params, std), 1)
 
 
+def start_action(action_dim: int, discrete: bool) -> jax.Array:
+    """An autoregressive decoder's 'no previous agent' action: index -1 (one-hot slot 0) or a
+    zero vector."""
+    if discrete:
+        return jnp.array(-1, jnp.int32)
+    return jnp.zeros(action_dim)
+
+
+def previous_action_features(actions: jax.Array, action_dim: int, discrete: bool) -> jax.Array:
+    """A decoder's inputs for previous actions: one-hot over A+1 slots (slot 0: the start
+    action), or the raw continuous vector."""
+    return jax.nn.one_hot(actions + 1, action_dim + 1) if discrete else actions
+
+
 def greedy_action(action_params: jax.Array, discrete: bool) -> jax.Array:
     """The most likely action: argmax of masked logits, or the Gaussian mean."""
     if discrete:

@@ -23,7 +23,14 @@ import jax
 import jax.numpy as jnp
 
 from cmat.config import NetworkConfig
-from cmat.networks.heads import ActionHead, action_distribution, greedy_action, mask_unavailable
+from cmat.networks.heads import (
+    ActionHead,
+    action_distribution,
+    greedy_action,
+    mask_unavailable,
+    previous_action_features,
+    start_action,
+)
 from cmat.networks.layers import (
     SMALL_GAIN,
     FeedForward,
@@ -145,14 +152,11 @@ class MATNetwork(nn.Module):
         return jnp.mean(self.encode(obs)[1], axis=-1)
 
     def start_action(self) -> jax.Array:
-        """The 'no previous agent' action: index -1 (one-hot slot 0) or a zero vector."""
-        if self.discrete:
-            return jnp.array(-1, jnp.int32)
-        return jnp.zeros(self.action_dim)
+        return start_action(self.action_dim, self.discrete)
 
     def embed(self, actions: jax.Array) -> jax.Array:
-        """Decoder tokens of previous actions: one-hot over A+1 slots, or the raw vector."""
-        features = jax.nn.one_hot(actions + 1, self.action_dim + 1) if self.discrete else actions
+        """Decoder tokens of previous actions (`previous_action_features`)."""
+        features = previous_action_features(actions, self.action_dim, self.discrete)
         tokens: jax.Array = self.token_norm(nn.gelu(self.action_embedding(features)))
         return tokens
 

@@ -26,7 +26,13 @@ import jax
 import jax.numpy as jnp
 
 from cmat.config import NetworkConfig
-from cmat.networks.heads import action_distribution, greedy_action, mask_unavailable
+from cmat.networks.heads import (
+    action_distribution,
+    greedy_action,
+    mask_unavailable,
+    previous_action_features,
+    start_action,
+)
 from cmat.networks.layers import SMALL_GAIN, dense
 from cmat.networks.mat import MATOutput
 from cmat.networks.retention import MultiScaleRetention, sinusoidal_encoding
@@ -252,13 +258,11 @@ class SableNetwork(nn.Module):
         return self.value_out(hidden)[..., 0]
 
     def start_action(self) -> jax.Array:
-        """The 'first agent of a timestep' token: index -1 (one-hot slot 0) or zeros."""
-        if self.discrete:
-            return jnp.array(-1, jnp.int32)
-        return jnp.zeros(self.action_dim)
+        """The first agent of a timestep's token (`start_action`)."""
+        return start_action(self.action_dim, self.discrete)
 
     def embed_actions(self, actions: jax.Array) -> jax.Array:
-        features = jax.nn.one_hot(actions + 1, self.action_dim + 1) if self.discrete else actions
+        features = previous_action_features(actions, self.action_dim, self.discrete)
         tokens: jax.Array = self.token_norm(nn.gelu(self.action_embedding(features)))
         return tokens
 
