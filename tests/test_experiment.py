@@ -19,12 +19,18 @@ import pytest
 import yaml
 from rliable import metrics as rliable_metrics
 
+from cmat.algorithms import algorithm_names
 from cmat.cli import main
 from cmat.errors import CmatError
 from cmat.experiments.claims import CLAIMS, NO_DATA
-from cmat.experiments.lines import Line
+from cmat.experiments.lines import (
+    Line,
+    drawn_suite_aggregates,
+    load_suite_aggregates,
+    matching_suite_aggregates,
+)
 from cmat.experiments.runner import run_experiment
-from cmat.experiments.spec import load_spec
+from cmat.experiments.spec import ALGO_LABELS, load_spec
 from cmat.experiments.statistics import aggregate, improvement_probability, iqm
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
@@ -415,6 +421,34 @@ def test_a_spec_names_the_paper_preset_or_the_defaults(tmp_path: Path) -> None:
     assert configs["paper"].preset == "paper" and configs["default"].preset is None
     assert (configs["paper"].num_envs, configs["default"].num_envs) == (8, 16)  # matrix suite
     assert configs["paper"].ppo == load_config(overrides=["preset=paper"]).ppo
+
+
+def test_every_algorithm_has_a_legend_label() -> None:
+    assert set(ALGO_LABELS) == set(algorithm_names())
+
+
+def test_published_suite_means_are_listed_for_a_suites_tasks_and_drawn_only_on_its_scale(
+    tmp_path: Path,
+) -> None:
+    """Two invented tasks ids under the LBF and RWARE prefixes pick up their suites' rows; an
+    unrelated task none; only rows whose `drawn_on` is the task's metric are drawn, one per
+    algorithm, the one nearest the budget."""
+    rows = load_suite_aggregates()
+    assert rows and all(0.0 <= row["value"] <= 1.0 and row["env_steps"] > 0 and row["source"]
+                        for row in rows)
+    lbf = matching_suite_aggregates(rows, ["jumanji:lbf-99x99-9p-9f"])
+    assert lbf and {row["suite"] for row in lbf} == {"Level-Based Foraging"}
+    both = matching_suite_aggregates(rows, ["jumanji:lbf-x", "jumanji:rware-x", "matrix:fig1"])
+    assert {row["suite"] for row in both} == {"Level-Based Foraging", "Robot Warehouse"}
+    assert matching_suite_aggregates(rows, ["matrix:fig1", "mpe:simple_spread"]) == []
+    drawn = drawn_suite_aggregates(rows, "jumanji:lbf-x", "episode_return", 700_000)
+    assert sorted(row["algorithm"] for row in drawn) == ["MAPPO", "MAT", "Sable"]
+    assert {row["env_steps"] for row in drawn} == {1_000_000}
+    assert {row["env_steps"] for row in
+            drawn_suite_aggregates(rows, "jumanji:lbf-x", "episode_return", 30_000_000)} == {
+        20_000_000}
+    assert drawn_suite_aggregates(rows, "jumanji:lbf-x", "win_rate", 700_000) == []
+    assert drawn_suite_aggregates(rows, "jumanji:rware-x", "episode_return", 700_000) == []
 
 
 def test_statistics_equal_rliables() -> None:

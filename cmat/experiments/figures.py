@@ -12,15 +12,26 @@ from typing import Any
 
 from matplotlib.figure import Figure
 
-from cmat.experiments.lines import METRIC_NAMES, Line, matching_references, reference_label
+from cmat.experiments.lines import (
+    METRIC_NAMES,
+    Line,
+    drawn_suite_aggregates,
+    matching_references,
+    reference_label,
+    suite_aggregate_label,
+)
 from cmat.experiments.plan import Plan
 
 
 def draw(
     plan: Plan, lines: dict[str, list[Line]], metrics: dict[str, str],
-    references: list[dict[str, Any]], figure_kind: str, path: Path,
+    references: list[dict[str, Any]], suite_aggregates: list[dict[str, Any]],
+    figure_kind: str, path: Path,
 ) -> None:
-    """A panel per task; `figure_kind` selects the variants drawn (main or ablation)."""
+    """A panel per task; `figure_kind` selects the variants drawn (main or ablation). Published
+    task figures are dashed grey lines; published suite means on the task's scale
+    (lines.drawn_suite_aggregates) are dotted lines in the colour of the same algorithm's line
+    where there is one."""
     envs = plan.spec.envs
     columns = min(3, len(envs))
     rows = math.ceil(len(envs) / columns)
@@ -63,6 +74,10 @@ def draw(
                 published.append(axes.axhline(ref["value"], color="0.35", lw=1,
                                               ls=("--", ":", "-.")[number % 3],
                                               label=wrap(reference_label(ref), 60)))
+            for row in drawn_suite_aggregates(suite_aggregates, env.id, metric, env.steps):
+                color = colors.get(row["algorithm"], "0.35")
+                published.append(axes.axhline(row["value"], color=color, lw=1, ls=":",
+                                              label=wrap(suite_aggregate_label(row), 60)))
         axes.set_xlabel("env steps per seed")
         axes.set_ylabel(f"eval {METRIC_NAMES[metric]}")
         axes.grid(alpha=0.3)

@@ -90,6 +90,41 @@ def matching_references(
     return [r for r in references if r["env"] == env_id and r["metric"] == metric]
 
 
+def load_suite_aggregates() -> list[dict[str, Any]]:
+    """The published suite-level curves of reference_results.yaml (`suite_aggregates`)."""
+    text = resources.files("cmat.experiments").joinpath("reference_results.yaml").read_text()
+    return list(yaml.safe_load(text)["suite_aggregates"])
+
+
+def matching_suite_aggregates(
+    aggregates: list[dict[str, Any]], env_ids: list[str]
+) -> list[dict[str, Any]]:
+    """The suite aggregates of every suite that one of `env_ids` belongs to (by id prefix)."""
+    return [row for row in aggregates
+            if any(env_id.startswith(row["env_prefix"]) for env_id in env_ids)]
+
+
+def drawn_suite_aggregates(
+    aggregates: list[dict[str, Any]], env_id: str, metric: str, steps: int
+) -> list[dict[str, Any]]:
+    """Per algorithm, the suite aggregate on `metric`'s scale for `env_id` whose env steps are
+    nearest (in log scale) to the task's budget `steps`."""
+    nearest: dict[str, dict[str, Any]] = {}
+    for row in matching_suite_aggregates(aggregates, [env_id]):
+        if row.get("drawn_on") != metric:
+            continue
+        best = nearest.get(row["algorithm"])
+        if best is None or (abs(math.log(row["env_steps"] / steps))
+                            < abs(math.log(best["env_steps"] / steps))):
+            nearest[row["algorithm"]] = row
+    return list(nearest.values())
+
+
+def suite_aggregate_label(row: dict[str, Any]) -> str:
+    return (f"published {row['algorithm']} {row['value']:.2g}, mean over {row['tasks']} "
+            f"{row['suite']} tasks at {row['env_steps']:.0e} steps (Sable paper)")
+
+
 def reference_label(ref: dict[str, Any]) -> str:
     same = " (StarCraft II, not SMAX)" if ref["benchmark"] == "SMAC" else ""
     return (f"published {ref['algorithm']} {ref['value']:.3g}{same}, {ref['source']}, "

@@ -78,6 +78,19 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
                        f"{ref['source']}{note} |")
     else:
         out.append("None for these tasks.")
+    suite_rows = summary.get("suite_published", [])
+    if suite_rows:
+        out += ["", "Published suite means: each algorithm's curve in the Sable paper's benchmark, "
+                "aggregated over the suite's tasks (10 seeds per task, tuned hyper-parameters), "
+                "read off the figure at three budgets. Context for the suite, not a figure of "
+                "any one task above; drawn on a task's panel (dotted) only where its scale is "
+                "the task's (LBF's team return is normalised to [0, 1]).", "",
+                "| suite | algorithm | mean over tasks | env steps | source |",
+                "|---|---|---|---|---|"]
+        for row in suite_rows:
+            note = f" ({row['note']})" if row.get("note") else ""
+            out.append(f"| {row['suite']} ({row['tasks']} tasks) | {row['algorithm']} | "
+                       f"{row['value']:.3g} | {row['env_steps']:.0e} | {row['source']}{note} |")
     out += ["", "## Runs", "", "| run | found | this time |", "|---|---|---|"]
     for run in summary["runs"]:
         found = run["status"] + (f": {run['note']}" if run["note"] else "")

@@ -25,7 +25,9 @@ from cmat.experiments.lines import (
     Line,
     collect_lines,
     load_references,
+    load_suite_aggregates,
     matching_references,
+    matching_suite_aggregates,
     task_metric,
 )
 from cmat.experiments.markdown import markdown
@@ -40,13 +42,14 @@ def write_report(plan: Plan) -> list[Path]:
     lines = collect_lines(plan)
     metrics = {env.id: task_metric(lines.get(env.id, [])) for env in plan.spec.envs}
     references = load_references()
+    suite_aggregates = load_suite_aggregates()
     written = []
     path = plan.out / "figure_main.png"
-    draw(plan, lines, metrics, references, "main", path)
+    draw(plan, lines, metrics, references, suite_aggregates, "main", path)
     written.append(path)
     if any("ablation" in v.figures for v in plan.spec.variants):
         path = plan.out / "figure_ablation.png"
-        draw(plan, lines, metrics, references, "ablation", path)
+        draw(plan, lines, metrics, references, suite_aggregates, "ablation", path)
         written.append(path)
     summary = summarise(plan, lines, metrics, references)
     (plan.out / "results.json").write_text(json.dumps(summary, indent=1))
@@ -90,6 +93,8 @@ def summarise(
         "seeds": plan.spec.seeds,
         "tasks": tasks,
         "aggregate": aggregate(lines, metrics, plan.spec),
+        "suite_published": matching_suite_aggregates(
+            load_suite_aggregates(), [env.id for env in plan.spec.envs]),
         "runs": [{"run": run.name, "status": run.found, "note": run.note,
                   "outcome": run.outcome} for run in plan.runs],
     }

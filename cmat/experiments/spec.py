@@ -51,7 +51,7 @@ SPEC_KEYS = ("name", "description", "steps", "seeds", "seed", "seeds_per_run", "
 ENV_KEYS = ("id", "steps", "set", "label", "unavailable")
 VARIANT_KEYS = ("algos", "envs", "set", "steps", "from", "finetune", "figure", "label")
 ALGO_LABELS = {"cmat": "CMAT", "mat": "MAT", "pmat": "PMAT", "triple_bert": "Triple-BERT",
-               "happo": "HAPPO", "mappo": "MAPPO"}
+               "happo": "HAPPO", "mappo": "MAPPO", "sable": "Sable"}
 
 
 @dataclass(frozen=True)
