@@ -4,6 +4,8 @@
     python benchmarks/throughput.py --envs 128 --scenarios smax:3m
     python benchmarks/throughput.py --compare-algorithms  # every algorithm on 3s5z_vs_3s6z
     python benchmarks/throughput.py --compare-algorithms --algo cmat --algo mat --preset mava
+    python benchmarks/throughput.py --compare-algorithms --algo sable \
+        --algo sable:network.recurrent=true        # an algorithm with its own overrides
 
 Breakdown (one process, default config but `--envs` environments): env-only steps/s (random
 legal actions in the same kind of scan), collection steps/s (CMAT acting + env, no update), full
@@ -16,7 +18,8 @@ the shared machine's load hits both; besides the ratio of the fastest runs, the 
 median and range of the ratios of the `--repeats` alternating pairs. `XLA_FLAGS` from the
 environment applies to every program and is printed in the header.
 
-Algorithm comparison (one process per algorithm, each with its defaults from cmat.config):
+Algorithm comparison (one process per algorithm, each with its defaults from cmat.config;
+`--algo ALGO:KEY=VALUE,...` adds overrides for that line alone, after `--set`'s):
 training steps/s counting all seeds' environment steps, timed on the second chunk. The `mava`
 preset is the configuration at which Mava's MAT was measured on this kind of machine
 (shared/reference/README.md: about 169 steps/s and 13.2 GB peak on 3s5z_vs_3s6z).
@@ -164,20 +167,32 @@ def compare_algorithms(args: argparse.Namespace) -> None:
           "each algorithm with its own defaults from cmat.config)")
     print(f"{'algo':<12} {'preset':<10} {'steps/s':>9} {'s/update':>9} {'compile s':>10} "
           f"{'peak RSS GB':>12}  overrides")
-    for algo in args.algo or algorithm_names():
+    for line in args.algo or algorithm_names():
+        algo, _, own = line.partition(":")
         for preset in args.preset or ["reference"]:
-            overrides = [*PRESETS[preset], *args.set]
+            overrides = [*PRESETS[preset], *args.set, *filter(None, own.split(","))]
             command = [sys.executable, __file__, "--single", "--env", args.env, "--algo", algo,
                        "--updates", str(args.updates), "--set", *overrides]
             done = subprocess.run(command, check=False, capture_output=True, text=True)
             if done.returncode != 0:
                 reason = (done.stderr.strip().splitlines() or ["failed"])[-1]
-                print(f"{algo:<12} {preset:<10} failed: {reason}")
+                print(f"{line:<12} {preset:<10} failed: {reason}")
                 continue
             result = json.loads(done.stdout.strip().splitlines()[-1])
-            print(f"{algo:<12} {preset:<10} {result['steps_per_second']:>9.0f} "
+            print(f"{line:<12} {preset:<10} {result['steps_per_second']:>9.0f} "
                   f"{result['seconds_per_update']:>9.2f} {result['compile_seconds']:>10.1f} "
                   f"{result['peak_rss_gb']:>12.2f}  {' '.join(overrides) or '-'}", flush=True)
+
+
+def algorithm_line(text: str) -> str:
+    """An `--algo` value: a known algorithm, optionally with `:KEY=VALUE,...` of its own."""
+    algo, _, own = text.partition(":")
+    if algo not in algorithm_names():
+        raise argparse.ArgumentTypeError(
+            f"unknown algorithm {algo!r}; available: {', '.join(algorithm_names())}")
+    if any("=" not in item for item in filter(None, own.split(","))):
+        raise argparse.ArgumentTypeError(f"{text!r}: overrides after ':' are KEY=VALUE,...")
+    return text
 
 
 def main() -> None:
@@ -187,7 +202,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--compare-algorithms", action="store_true")
     parser.add_argument("--env", default="smax:3s5z_vs_3s6z", help="env of the comparison")
-    parser.add_argument("--algo", choices=algorithm_names(), action="append")
+    parser.add_argument("--algo", type=algorithm_line, action="append",
+                        help="ALGO or ALGO:KEY=VALUE,... (repeatable)")
     parser.add_argument("--preset", choices=sorted(PRESETS), action="append",
                         help="comparison config (default: reference)")
     parser.add_argument("--updates", type=int, default=1, help="updates per timed chunk")
