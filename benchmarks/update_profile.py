@@ -7,10 +7,11 @@
 Collects one rollout with the algorithm's own config for `--env`, compiles `learn` (target-critic
 GAE, every epoch and minibatch of the algorithm's update, the target critic's soft update) on that
 fixed rollout, runs it once to warm up, then `--repeats` times under `jax.profiler.trace`. The
-trace's per-operation events (XLA's CPU runtime records one per executed thunk: a fusion, a dot,
-a loop) are summed by operation, and the top `--top` are printed with their share of the update's
-wall time, grouped into kinds (dot, convolution, fusion, loop control, copy, other) and listed
-with the HLO of the fusion where one is named. Also printed: XLA's FLOP count of the update and
+trace's per-operation events (XLA's CPU runtime records one per executed thunk) are matched to
+the optimised HLO's instructions and summed: by kind (plain matmuls, batched matmuls, fusions
+that contain either, elementwise fusions, other opcodes), elementwise fusions by output shape,
+and the top `--top` operations. Shares are of the operations' busy time; its ratio to the wall
+time is the average number of threads at work. Also printed: XLA's FLOP count of the update and
 its achieved FLOP/s.
 """
 
@@ -24,18 +25,46 @@ import re
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 
-def operation_kind(name: str) -> str:
-    lowered = name.lower()
-    for kind in ("dot", "convolution", "fusion", "while", "conditional", "copy", "transpose",
-                 "reduce", "sort", "custom-call", "all-reduce"):
-        if kind in lowered:
-            return kind
-    return "other"
+def hlo_operations(hlo: str) -> dict[str, tuple[str, str]]:
+    """Each instruction of the optimised HLO text: name -> (kind, output shape). Kinds: a dot
+    with batch dimensions ("batched dot"), a plain one ("matmul"), a fusion that contains either
+    ("fused batched dot", "fused matmul"), any other fusion ("elementwise fusion"), or the
+    instruction's opcode."""
+    bodies: dict[str, str] = {}
+    current = None
+    for line in hlo.splitlines():
+        header = re.match(r"^%?([\w.\-]+) .*\{\s*$", line)
+        if header and not line.startswith(" "):
+            current = header.group(1)
+            bodies[current] = ""
+        elif current is not None and line.strip() == "}":
+            current = None
+        elif current is not None:
+            bodies[current] += line + "\n"
+    operations = {}
+    for line in hlo.splitlines():
+        match = re.match(r"\s*(?:ROOT )?%?([\w.\-]+) = (\S+) ([\w\-]+)\(", line)
+        if not match:
+            continue
+        name, shape, opcode = match.groups()
+        shape = re.sub(r"\{.*", "", shape)
+        if opcode == "dot":
+            kind = "batched dot" if "lhs_batch_dims" in line else "matmul"
+        elif opcode == "fusion":
+            called = re.search(r"calls=%?([\w.\-]+)", line)
+            body = bodies.get(called.group(1), "") if called else ""
+            kind = (("fused batched dot" if "lhs_batch_dims" in body else "fused matmul")
+                    if " dot(" in body else "elementwise fusion")
+        else:
+            kind = opcode
+        operations[name] = (kind, shape)
+    return operations
 
 
-def trace_events(directory: Path) -> list[dict]:
+def trace_events(directory: Path) -> list[dict[str, Any]]:
     """The complete events ("ph": "X") of the perfetto trace jax.profiler wrote under
     `directory`."""
     paths = sorted(directory.rglob("*.trace.json.gz"))
@@ -58,12 +87,16 @@ def main() -> None:
 
     import jax
 
+    from cmat.errors import CmatError
     from cmat.resolve import load_config
     from cmat.runners import trainer
     from cmat.runners.learner import learn
 
-    config = load_config(overrides=[f"env={args.env}", f"algo={args.algo}", *args.set])
-    setup = trainer.build_setup(config)
+    try:
+        config = load_config(overrides=[f"env={args.env}", f"algo={args.algo}", *args.set])
+        setup = trainer.build_setup(config)
+    except CmatError as error:
+        parser.error(str(error))
     state = trainer.init_state(setup, jax.random.PRNGKey(0))
     _, rollout = jax.jit(setup.collector.collect)(state.learner.params, state.envs,
                                                   jax.random.PRNGKey(1))
@@ -78,29 +111,34 @@ def main() -> None:
                 jax.block_until_ready(compiled(state.learner, rollout))
             wall = (time.perf_counter() - start) / args.repeats
         events = trace_events(Path(directory))
+    operations = hlo_operations(compiled.as_text() or "")
     totals: collections.Counter[str] = collections.Counter()
     counts: collections.Counter[str] = collections.Counter()
     for event in events:
-        name = event["name"]
-        if re.match(r"^(PjitFunction|PjRt|Execute|Thunk|jit_|TfrtCpu|\$)", name):
-            continue
-        totals[name] += event["dur"] / 1e6 / args.repeats
-        counts[name] += 1
+        if event["name"] in operations:
+            totals[event["name"]] += event["dur"] / 1e6 / args.repeats
+            counts[event["name"]] += 1
     measured = sum(totals.values())
-    print(f"{args.algo} on {args.env}: one update {wall:.3f} s "
-          f"({config.steps_per_update / wall:.0f} env steps/s for the update alone); "
-          f"{flops / 1e9:.2f} GFLOP, {flops / wall / 1e9:.1f} GFLOP/s; "
-          f"{len(totals)} operations, {measured:.3f} s of events per update "
-          f"(thread time; above the wall time where threads overlap)")
+    print(f"{args.algo} on {args.env} ({' '.join(args.set) or 'its defaults'}): one update "
+          f"{wall:.3f} s ({config.steps_per_update / wall:.0f} env steps/s for the update "
+          f"alone); {flops / 1e9:.2f} GFLOP, {flops / wall / 1e9:.1f} GFLOP/s; operations "
+          f"busy {measured:.3f} s per update ({measured / wall:.2f} threads on average)")
     kinds: collections.Counter[str] = collections.Counter()
+    elementwise: collections.Counter[str] = collections.Counter()
     for name, seconds in totals.items():
-        kinds[operation_kind(name)] += seconds
+        kind, shape = operations[name]
+        kinds[kind] += seconds
+        if kind == "elementwise fusion":
+            elementwise[shape] += seconds
     print("by kind: " + ", ".join(f"{kind} {seconds / measured:.0%}"
                                   for kind, seconds in kinds.most_common()))
-    print(f"{'share':>6} {'s/update':>9} {'calls':>7}  operation")
+    print("elementwise fusions by output shape: " + ", ".join(
+        f"{shape} {seconds / measured:.1%}" for shape, seconds in elementwise.most_common(8)))
+    print(f"{'share':>6} {'s/update':>9} {'calls':>6}  operation")
     for name, seconds in totals.most_common(args.top):
-        print(f"{seconds / measured:>6.1%} {seconds:>9.4f} {counts[name] // args.repeats:>7}  "
-              f"{name[:110]}")
+        kind, shape = operations[name]
+        print(f"{seconds / measured:>6.1%} {seconds:>9.4f} {counts[name] // args.repeats:>6}  "
+              f"{name} ({kind}, {shape})")
 
 
 if __name__ == "__main__":
