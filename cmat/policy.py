@@ -4,6 +4,9 @@
     env = policy.make_env()                   # the environment the run trained on
     actions = policy.greedy(obs, action_mask)  # obs [n, obs_dim] or [B, n, obs_dim]
 
+    memory = policy.initial_memory()           # a recurrent policy (recurrent Sable) instead
+    actions, memory = policy.greedy_with_memory(memory, obs, action_mask, start=done_before)
+
 The actions are those `cmat eval` takes (greedy) or training samples (`act`), ready for the
 environment's `step`: discrete ones are action indices, continuous ones are clipped to the
 spec's range (host adapters map them onto each agent's Box).
@@ -49,12 +52,20 @@ class Policy:
         """Whether the checkpoint is at the run's budget."""
         return self.env_steps == self.config.budget_steps
 
+    @property
+    def recurrent(self) -> bool:
+        """Whether the policy acts from a state carried across an episode's steps; it then acts
+        through `initial_memory` and `greedy_with_memory` only."""
+        return self.algorithm.recurrent
+
     def greedy(self, obs: Any, action_mask: Any = None) -> jax.Array:
         """The most likely actions: [n] ints or [n, A] floats for obs [n, obs_dim]; with a
         leading batch axis [B, ...] for obs [B, n, obs_dim]. `action_mask` [.., n, A] bool (True
         = available) defaults to every action.
 
-        Raises CmatError if obs or action_mask do not have the spec's shapes."""
+        Raises CmatError if obs or action_mask do not have the spec's shapes, or if the policy
+        is recurrent."""
+        self._stateless("greedy")
         obs, action_mask = self._inputs(obs, action_mask)
         actions: jax.Array = _greedy_team(self, self.params, obs, action_mask)
         return actions
@@ -63,11 +74,44 @@ class Policy:
         """Actions sampled as in training (shapes as `greedy`); `key` a jax PRNG key
         (default PRNGKey(0)), split over the batch.
 
-        Raises CmatError if obs or action_mask do not have the spec's shapes."""
+        Raises CmatError if obs or action_mask do not have the spec's shapes, or if the policy
+        is recurrent."""
+        self._stateless("act")
         obs, action_mask = self._inputs(obs, action_mask)
         key = jax.random.PRNGKey(0) if key is None else key
         actions: jax.Array = _sample_team(self, self.params, obs, action_mask, key)
         return actions
+
+    def initial_memory(self, batch: int | None = None) -> Any:
+        """The state before an episode's first step (() for a feed-forward policy); with
+        `batch`, one per team of a batch [batch, ...]."""
+        memory = self.algorithm.initial_memory()
+        if batch is None:
+            return memory
+        return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *jnp.shape(x))), memory)
+
+    def greedy_with_memory(
+        self, memory: Any, obs: Any, action_mask: Any = None, start: Any = False,
+    ) -> tuple[jax.Array, Any]:
+        """`greedy` for any policy, recurrent ones included: the most likely actions from
+        `memory`, the state the previous call of the same episode returned (`initial_memory()`
+        at the first), reset first where `start` ([] or [B] bool) says `obs` begins a new
+        episode. Returns the actions (shapes as `greedy`) and the state for the next step.
+
+        Raises CmatError if obs or action_mask do not have the spec's shapes."""
+        obs, action_mask = self._inputs(obs, action_mask)
+        start = jnp.broadcast_to(jnp.asarray(start, bool), obs.shape[:-2])
+        actions, memory = _greedy_team_with_memory(self, self.params, memory, obs, action_mask,
+                                                   start)
+        return actions, memory
+
+    def _stateless(self, method: str) -> None:
+        if self.recurrent:
+            raise CmatError(
+                f"this {self.config.algo} policy is recurrent (network.recurrent=true): it acts "
+                f"from a state carried across an episode's steps; use "
+                f"policy.greedy_with_memory(policy.initial_memory(), obs, ...) instead of "
+                f"policy.{method}")
 
     def make_env(self) -> Any:
         """A new instance of the environment the run trained on, with its `env_kwargs`: an
@@ -105,6 +149,20 @@ def _greedy_team(policy: Policy, params: Any, obs: jax.Array, mask: jax.Array) -
     actions = act(params, obs, mask) if obs.ndim == 2 else jax.vmap(act, (None, 0, 0))(
         params, obs, mask)
     return env_actions(policy.spec, actions)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _greedy_team_with_memory(
+    policy: Policy, params: Any, memory: Any, obs: jax.Array, mask: jax.Array, start: jax.Array,
+) -> tuple[jax.Array, Any]:
+    from cmat.runners.collector import env_actions
+
+    act = policy.algorithm.greedy_with_memory
+    if obs.ndim == 2:
+        actions, memory = act(params, memory, obs, mask, start)
+    else:
+        actions, memory = jax.vmap(act, (None, 0, 0, 0, 0))(params, memory, obs, mask, start)
+    return env_actions(policy.spec, actions), memory
 
 
 @functools.partial(jax.jit, static_argnums=0)

@@ -115,10 +115,11 @@ def jaxmarl_frames(policy: Policy, episodes: int, seed: int, limit: int) -> Iter
     for episode in range(episodes):
         key, reset_key = jax.random.split(key)
         state, timestep = reset(reset_key)
-        total = 0.0
+        total, memory = 0.0, policy.initial_memory()
         for t in range(limit):
             key, step_key = jax.random.split(key)
-            actions = policy.greedy(timestep.obs, timestep.action_mask)
+            actions, memory = policy.greedy_with_memory(memory, timestep.obs,
+                                                        timestep.action_mask)
             yield Frame((step_key, state, actions), episode, t, total)
             state, timestep = step(step_key, state, actions)
             total += float(timestep.reward)
@@ -173,10 +174,12 @@ def host_frames(policy: Policy, episodes: int, seed: int, limit: int) -> Iterato
     try:
         for episode in range(episodes):
             timestep, total = env.reset(seed=seed + episode), 0.0
+            memory = policy.initial_memory()
             for t in range(limit):
                 picture = draw_host(simulator, policy.config.env)
-                actions = np.asarray(policy.greedy(timestep.obs, timestep.action_mask))
-                timestep = env.step(actions)
+                chosen, memory = policy.greedy_with_memory(memory, timestep.obs,
+                                                           timestep.action_mask)
+                timestep = env.step(np.asarray(chosen))
                 total += float(timestep.reward)
                 last = ("stopped at --max-steps" if not timestep.done and t + 1 == limit
                         else outcome(timestep.won, policy.spec.has_win_rate) if timestep.done

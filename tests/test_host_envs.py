@@ -403,9 +403,12 @@ def test_permuting_agents_permutes_the_policy_through_the_host_runner(reach_run:
         np.testing.assert_allclose(means(other_obs, other_mask), means(obs, mask)[:, order],
                                    atol=1e-5)
         learner = state.learner
-        _, acted, _ = plain._policy(learner.params, learner.rng, obs[None], mask[None])
-        _, other_acted, _ = permuted._policy(learner.params, learner.rng, other_obs[None],
-                                             other_mask[None])
+        no_state = np.zeros((1, obs.shape[0], plain.env_spec.state_dim), np.float32)
+        start = np.ones((1, obs.shape[0]), bool)
+        _, acted, _, _ = plain._policy(learner.params, learner.rng, (), obs[None], mask[None],
+                                       no_state, start)
+        _, other_acted, _, _ = permuted._policy(learner.params, learner.rng, (), other_obs[None],
+                                                other_mask[None], no_state, start)
         np.testing.assert_allclose(acted.value, other_acted.value, atol=1e-5)
         np.testing.assert_allclose(plain.evaluate(state, 4)["episode_return"],
                                    permuted.evaluate(state, 4)["episode_return"], rtol=1e-4)

@@ -15,8 +15,11 @@ from test_host_envs import SignalGame
 import cmat
 from cmat.cli import build_trainer, main
 from cmat.errors import CmatError
+from cmat.policy import Policy
+from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners.base import EVAL_SEED_OFFSET, seed_keys
+from cmat.runners.trainer import JaxTrainer
 
 SMAX_RUN = ["train", "--env", "smax:3m", "--steps", "128", "--seeds", "2", "--set",
             "num_envs=4", "rollout_length=16", "ppo.epochs=1", "eval_episodes=4", "seed=5"]
@@ -195,3 +198,39 @@ def test_render_requests_it_cannot_serve_are_one_error(
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and message in error[0], error
     assert not (tmp_path / "a.gif").exists()
+
+
+def test_a_recurrent_policys_loop_with_memory_scores_what_evaluation_scores() -> None:
+    """Recurrent Sable (untrained, so cheap) on MPE: a hand loop through `greedy_with_memory`, the
+    state carried from step to step and reset where an episode starts, replays the trainer's
+    greedy evaluation of seed 6 exactly; the stateless `greedy` and `act` refuse it."""
+    config = load_config(overrides=[
+        "env=mpe:simple_spread", "env_kwargs.max_steps=6", "algo=sable",
+        "network.recurrent=true", "network.n_embd=16", "num_envs=4", "rollout_length=16",
+        "seeds=2", "seed=5", "ppo.num_minibatches=2",
+    ])
+    trainer = JaxTrainer(config)
+    state = trainer.init()
+    episodes = 4
+    expected = trainer.evaluate(state, episodes)["episode_return"][1]
+    params = jax.tree.map(lambda x: x[1], state.learner.params)
+    policy = Policy(trainer.env_spec, config, 6, 0, trainer.learner_setup.algorithm, params)
+    assert policy.recurrent
+    env = policy.make_env()
+    rng = seed_keys(config, offset=EVAL_SEED_OFFSET)[1]
+    reset_key, rng = jax.random.split(rng)
+    env_state, step = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
+    for method in (policy.greedy, policy.act):
+        with pytest.raises(CmatError, match=r"recurrent .*greedy_with_memory"):
+            method(step.obs, step.action_mask)
+    memory = policy.initial_memory(episodes)
+    returns, finished = np.zeros(episodes), np.zeros(episodes, bool)
+    env_step = jax.jit(jax.vmap(env.step))
+    for key in jax.random.split(rng, policy.spec.max_episode_steps):
+        actions, memory = policy.greedy_with_memory(memory, step.obs, step.action_mask,
+                                                    step.done)
+        env_state, step = env_step(jax.random.split(key, episodes), env_state, actions)
+        returns += np.where(finished, 0.0, np.asarray(step.reward))
+        finished |= np.asarray(step.done)
+    assert not np.allclose(jax.tree.leaves(memory)[0], 0.0)
+    np.testing.assert_allclose(returns.mean(), expected, rtol=1e-5)

@@ -1,22 +1,25 @@
 """Training on host environments (MuJoCo, GRF, PettingZoo): `HostTrainer`.
 
 Only collection differs from `JaxTrainer`. Each step is one jitted call of the algorithm's
-`act`, vmapped over every environment of every seed, then one `step` of the host pool
+`act_with_memory`, vmapped over every environment of every seed, then one `step` of the host pool
 (`cmat.envs.host.pool`, in-process or in worker processes). The rollout, stacked to
 [T, seeds, envs, ...], goes to the shared learner's `learn` (cmat.runners.learner), jitted and
 vmapped over seeds. Greedy evaluation (cmat.runners.evaluation) runs on a second pool, so
-training episodes are not cut by it.
+training episodes are not cut by it. A recurrent algorithm's state (`memory`, [seeds, envs, ...])
+is carried from step to step on the host side of the loop and reset where an episode starts, as
+the in-graph collector does; each rollout records the state it began with.
 
 Seeds: seed k runs its own `num_envs` environments (env slot i of all seeds is i + k·num_envs in
 the pool). Checkpoints hold the learner's state (cmat.runners.base); host simulator state cannot
 be saved, so a resumed run starts fresh episodes (the ones running at the checkpoint are
-dropped).
+dropped) from a fresh recurrent state.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from functools import partial
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -27,7 +30,6 @@ from cmat.config import TrainConfig
 from cmat.envs.host import default_workers, make_host_env
 from cmat.envs.host.pool import COUNTERS, InProcessPool, WorkerPool, make_pool
 from cmat.envs.host.protocol import HostBatch
-from cmat.errors import CmatError
 from cmat.runners.base import (
     EVAL_SEED_OFFSET,
     Trainer,
@@ -59,27 +61,37 @@ def host_learner(
     return init_learner(setup, init_key, rng, obs[0], mask[0])
 
 
+def fresh_memory(setup: LearnerSetup, seeds: int, envs: int) -> Any:
+    """The algorithm's initial state for every environment of every seed ([seeds, envs, ...];
+    () for feed-forward algorithms)."""
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (seeds, envs, *jnp.shape(x))),
+                        setup.algorithm.initial_memory())
+
+
 def policy_step(
-    setup: LearnerSetup, params: Params, rng: jax.Array, obs: jax.Array, mask: jax.Array,
-    global_state: jax.Array | None = None,
-) -> tuple[jax.Array, ActResult, jax.Array]:
-    """Sample actions for every environment of every seed ([seeds, envs, ...]); returns the
-    seeds' next keys, what `act` returned, and the actions to send (`env_actions`).
-    `global_state` [seeds, envs, state_dim] may be left out where the env has none."""
+    setup: LearnerSetup, params: Params, rng: jax.Array, memory: Any, obs: jax.Array,
+    mask: jax.Array, global_state: jax.Array, start: jax.Array,
+) -> tuple[jax.Array, ActResult, jax.Array, Any]:
+    """Sample actions for every environment of every seed ([seeds, envs, ...]; `params` per
+    seed) from the state `memory` after the previous step (reset where `start` [seeds, envs]
+    begins an episode); returns the seeds' next keys, what `act_with_memory` returned, the
+    actions to send (`env_actions`) and the new state."""
     envs = obs.shape[1]
-    if global_state is None:
-        global_state = jnp.zeros((*obs.shape[:2], 0))
     keys = jax.vmap(jax.random.split)(rng)
     act_keys = jax.vmap(lambda key: jax.random.split(key, envs))(keys[:, 1])
-    act = jax.vmap(jax.vmap(setup.algorithm.act, in_axes=(None, 0, 0, 0, 0)))
-    acted = act(params, obs, mask, act_keys, global_state)
-    return keys[:, 0], acted, env_actions(setup.spec, acted.actions)
+    act = jax.vmap(jax.vmap(setup.algorithm.act_with_memory, in_axes=(None, 0, 0, 0, 0, 0, 0)))
+    acted, memory = act(params, memory, obs, mask, act_keys, global_state, start)
+    return keys[:, 0], acted, env_actions(setup.spec, acted.actions), memory
 
 
-def greedy_step(setup: LearnerSetup, params: Params, obs: jax.Array, mask: jax.Array) -> jax.Array:
-    """Greedy actions to send for every environment of every seed."""
-    greedy = jax.vmap(jax.vmap(setup.algorithm.greedy, in_axes=(None, 0, 0)))
-    return env_actions(setup.spec, greedy(params, obs, mask))
+def greedy_step(
+    setup: LearnerSetup, params: Params, memory: Any, obs: jax.Array, mask: jax.Array,
+    start: jax.Array,
+) -> tuple[jax.Array, Any]:
+    """Greedy actions to send for every environment of every seed, and the new state."""
+    greedy = jax.vmap(jax.vmap(setup.algorithm.greedy_with_memory, in_axes=(None, 0, 0, 0, 0)))
+    actions, memory = greedy(params, memory, obs, mask, start)
+    return env_actions(setup.spec, actions), memory
 
 
 def env_seeds(base: int, stream: int, count: int) -> list[int]:
@@ -101,12 +113,6 @@ class HostTrainer:
         self.env_spec = probe.spec
         self._spare = [probe]  # becomes the first environment of an in-process pool
         self.learner_setup = build_learner(config, self.env_spec)
-        if self.learner_setup.algorithm.recurrent:
-            raise CmatError(
-                f"{config.algo} with network.recurrent=true carries a state across steps, which "
-                f"host environments ({config.env}) do not support yet; train it on an in-graph "
-                f"environment or with network.recurrent=false"
-            )
         self._init = jax.jit(partial(host_learner, self.learner_setup))
         self._policy = jax.jit(partial(policy_step, self.learner_setup))
         self._greedy = jax.jit(partial(greedy_step, self.learner_setup))
@@ -120,6 +126,7 @@ class HostTrainer:
         self._eval_size = 0
         self._timestep: HostBatch | None = None
         self._episode_return = np.zeros((config.seeds, config.num_envs), np.float32)
+        self._memory: Any = fresh_memory(self.learner_setup, config.seeds, config.num_envs)
 
     # ----------------------------------------------------------------------------- environments
     def _seeds(self, stream: int, per_seed: int) -> list[int]:
@@ -139,6 +146,7 @@ class HostTrainer:
             self._pool = self._new_pool(self._seeds(0, self.config.num_envs))
         self._timestep = self._pool.reset()
         self._episode_return[:] = 0.0
+        self._memory = fresh_memory(self.learner_setup, self.config.seeds, self.config.num_envs)
         return self._timestep
 
     def _per_seed(self, batch: np.ndarray) -> np.ndarray:
@@ -182,7 +190,8 @@ class HostTrainer:
         parameters ([T, seeds, envs, ...]); the learner comes back with its advanced key."""
         assert self._pool is not None and self._timestep is not None
         timestep, rng = self._timestep, learner.rng
-        running = self._episode_return
+        running, memory = self._episode_return, self._memory
+        first_memory = memory
         steps = []
         for _ in range(self.config.rollout_length):
             obs = self._per_seed(timestep.obs)
@@ -191,7 +200,8 @@ class HostTrainer:
                 self._per_seed(timestep.alive), self._per_seed(timestep.global_state),
                 self._per_seed(timestep.done),
             )
-            rng, acted, actions = self._policy(learner.params, rng, obs, mask, global_state)
+            rng, acted, actions, memory = self._policy(learner.params, rng, memory, obs, mask,
+                                                       global_state, start)
             actions = np.asarray(actions)
             timestep = self._pool.step(actions.reshape(-1, *actions.shape[2:]))
             reward, done = self._per_seed(timestep.reward), self._per_seed(timestep.done)
@@ -200,7 +210,7 @@ class HostTrainer:
                           np.where(done, running, 0.0).astype(np.float32), alive, global_state,
                           start))
             running = np.where(done, 0.0, running).astype(np.float32)
-        self._timestep, self._episode_return = timestep, running
+        self._timestep, self._episode_return, self._memory = timestep, running, memory
         (obs_t, mask_t, acted_t, reward_t, done_t, won_t, finished_t, alive_t,
          global_state_t, start_t) = zip(*steps, strict=True)
         acted = jax.tree.map(lambda *x: jnp.stack(x), *acted_t)
@@ -220,7 +230,7 @@ class HostTrainer:
             start=jnp.asarray(np.stack(start_t)),
         )
         rollout = Rollout(transitions, jnp.asarray(self._per_seed(timestep.obs)),
-                          jnp.asarray(self._per_seed(timestep.global_state)))
+                          jnp.asarray(self._per_seed(timestep.global_state)), first_memory)
         return dataclasses.replace(learner, rng=rng), rollout
 
     def train_chunk(
@@ -260,11 +270,14 @@ class HostTrainer:
         timestep = self._eval_pool.reset(seeds)
         quota = np.tile(split_evenly(episodes, slots), (config.seeds, 1))
         tally = tally_start((config.seeds, slots))
+        memory = fresh_memory(self.learner_setup, config.seeds, slots)
         for _ in range(int(quota.max()) * spec.max_episode_steps):
             if np.all(tally.finished >= quota):
                 break
             obs, mask = self._per_seed(timestep.obs), self._per_seed(timestep.action_mask)
-            actions = np.asarray(self._greedy(state.learner.params, obs, mask))
+            actions, memory = self._greedy(state.learner.params, memory, obs, mask,
+                                           self._per_seed(timestep.done))
+            actions = np.asarray(actions)
             timestep = self._eval_pool.step(actions.reshape(-1, *actions.shape[2:]))
             tally = tally_step(tally, self._per_seed(timestep.reward),
                                self._per_seed(timestep.done), self._per_seed(timestep.won), quota)
