@@ -4,8 +4,8 @@
     env = policy.make_env()                   # the environment the run trained on
     actions = policy.greedy(obs, action_mask)  # obs [n, obs_dim] or [B, n, obs_dim]
 
-    memory = policy.initial_memory()           # a recurrent policy (recurrent Sable) instead
-    actions, memory = policy.greedy_with_memory(memory, obs, action_mask, start=done_before)
+    memory = policy.initial_memory()           # a recurrent policy (recurrent Sable): per step,
+    actions, memory = policy.greedy_with_memory(memory, obs, action_mask, start=new_episode)
 
 The actions are those `cmat eval` takes (greedy) or training samples (`act`), ready for the
 environment's `step`: discrete ones are action indices, continuous ones are clipped to the
