@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cmat.algorithms.base import initial_memories
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
@@ -85,10 +86,7 @@ class Policy:
     def initial_memory(self, batch: int | None = None) -> Any:
         """The state before an episode's first step (() for a feed-forward policy); with
         `batch`, one per team of a batch [batch, ...]."""
-        memory = self.algorithm.initial_memory()
-        if batch is None:
-            return memory
-        return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *jnp.shape(x))), memory)
+        return initial_memories(self.algorithm, *(() if batch is None else (batch,)))
 
     def greedy_with_memory(
         self, memory: Any, obs: Any, action_mask: Any = None, start: Any = False,

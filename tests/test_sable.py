@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from pettingzoo import ParallelEnv
+from test_training import greedy_return_gain
 
 from cmat.algorithms.base import Batch
 from cmat.algorithms.sable import Sable, permute_agents
@@ -30,7 +31,6 @@ from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.host import HostTrainer
 from cmat.runners.learner import Rollout, make_batch
-from cmat.runners.trainer import JaxTrainer
 
 STEPS, AGENTS, HEAD, ACTIONS, OBS_DIM = 6, 3, 4, 5, 7
 STARTS = jnp.array([False, True, False, False, True, False])
@@ -435,10 +435,4 @@ def test_sable_learns_level_based_foraging() -> None:
         "algo=sable", "env=jumanji:lbf-2s-8x8-2p-2f-coop", "total_steps=204800",
         "log_interval=50", "eval_episodes=64",
     ])
-    trainer = JaxTrainer(config)
-    state = trainer.init()
-    before = trainer.evaluate(state, 64)
-    state, metrics = trainer.train_chunk(state)
-    after = trainer.evaluate(state, 64)
-    assert metrics["env_steps"][0] == 204800
-    assert after["episode_return"][0] >= before["episode_return"][0] + 0.15, (before, after)
+    assert greedy_return_gain(config) >= 0.15

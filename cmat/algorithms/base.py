@@ -168,3 +168,10 @@ class Algorithm(Protocol):
         """A tree like `params` labelling each leaf `sgd.TRAIN` or `sgd.FROZEN` for fine-tuning
         stage `mode`; raises `CmatError` for an algorithm without fine-tuning stages."""
         ...
+
+
+def initial_memories(algorithm: Algorithm, *batch: int) -> Any:
+    """`algorithm.initial_memory()` for every team of a batch of shape `batch` ([*batch, ...];
+    () for feed-forward algorithms)."""
+    return jax.tree.map(lambda x: jax.numpy.broadcast_to(x, (*batch, *jax.numpy.shape(x))),
+                        algorithm.initial_memory())

@@ -7,6 +7,7 @@ return. A line's final score is each seed's last greedy evaluation.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from importlib import resources
@@ -78,10 +79,17 @@ def task_metric(lines: list[Line]) -> str:
     return "episode_return"
 
 
-def load_references() -> list[dict[str, Any]]:
-    """The published figures of cmat/experiments/reference_results.yaml."""
+@functools.cache
+def reference_file() -> dict[str, Any]:
+    """cmat/experiments/reference_results.yaml, parsed once."""
     text = resources.files("cmat.experiments").joinpath("reference_results.yaml").read_text()
-    return list(yaml.safe_load(text)["results"])
+    parsed: dict[str, Any] = yaml.safe_load(text)
+    return parsed
+
+
+def load_references() -> list[dict[str, Any]]:
+    """The published figures of cmat/experiments/reference_results.yaml (`results`)."""
+    return list(reference_file()["results"])
 
 
 def matching_references(
@@ -92,8 +100,7 @@ def matching_references(
 
 def load_suite_aggregates() -> list[dict[str, Any]]:
     """The published suite-level curves of reference_results.yaml (`suite_aggregates`)."""
-    text = resources.files("cmat.experiments").joinpath("reference_results.yaml").read_text()
-    return list(yaml.safe_load(text)["suite_aggregates"])
+    return list(reference_file()["suite_aggregates"])
 
 
 def matching_suite_aggregates(

@@ -15,7 +15,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import Algorithm, Params
+from cmat.algorithms.base import Algorithm, Params, initial_memories
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
 from cmat.runners.learner import Rollout, Transition
 
@@ -46,10 +46,7 @@ class InGraphCollector:
         the chunk program compiles once (SMAX's reset yields weakly typed leaves)."""
         env_state, timestep = jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs))
         env_state = jax.tree.map(lambda x: jnp.asarray(x, dtype=x.dtype), env_state)
-        memory = jax.tree.map(
-            lambda x: jnp.broadcast_to(x, (self.num_envs, *jnp.shape(x))),
-            self.algorithm.initial_memory(),
-        )
+        memory = initial_memories(self.algorithm, self.num_envs)
         return EnvsState(env_state, timestep, jnp.zeros(self.num_envs), memory)
 
     def collect(

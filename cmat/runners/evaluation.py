@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cmat.algorithms.base import Algorithm, Params
+from cmat.algorithms.base import Algorithm, Params, initial_memories
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
 from cmat.runners.collector import env_actions
 
@@ -79,9 +79,7 @@ def evaluate_in_graph(
     reset_key, rng = jax.random.split(rng)
     env_state, timestep = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
     greedy = jax.vmap(algorithm.greedy_with_memory, in_axes=(None, 0, 0, 0, 0))
-    memory = jax.tree.map(
-        lambda x: jnp.broadcast_to(x, (episodes, *jnp.shape(x))), algorithm.initial_memory()
-    )
+    memory = initial_memories(algorithm, episodes)
     quota = jnp.ones(episodes, jnp.int32)
 
     Carry = tuple[Any, TimeStep, EpisodeTally, Any]

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cmat.algorithms.base import ActResult, Params
+from cmat.algorithms.base import ActResult, Params, initial_memories
 from cmat.config import TrainConfig
 from cmat.envs.host import default_workers, make_host_env
 from cmat.envs.host.pool import COUNTERS, InProcessPool, WorkerPool, make_pool
@@ -59,13 +59,6 @@ def host_learner(
     """A fresh learner of one seed whose environments show `obs` and `mask` [envs, ...]."""
     rng, init_key = jax.random.split(rng)
     return init_learner(setup, init_key, rng, obs[0], mask[0])
-
-
-def fresh_memory(setup: LearnerSetup, seeds: int, envs: int) -> Any:
-    """The algorithm's initial state for every environment of every seed ([seeds, envs, ...];
-    () for feed-forward algorithms)."""
-    return jax.tree.map(lambda x: jnp.broadcast_to(x, (seeds, envs, *jnp.shape(x))),
-                        setup.algorithm.initial_memory())
 
 
 def policy_step(
@@ -126,7 +119,8 @@ class HostTrainer:
         self._eval_size = 0
         self._timestep: HostBatch | None = None
         self._episode_return = np.zeros((config.seeds, config.num_envs), np.float32)
-        self._memory: Any = fresh_memory(self.learner_setup, config.seeds, config.num_envs)
+        self._memory: Any = initial_memories(self.learner_setup.algorithm, config.seeds,
+                                             config.num_envs)
 
     # ----------------------------------------------------------------------------- environments
     def _seeds(self, stream: int, per_seed: int) -> list[int]:
@@ -146,7 +140,8 @@ class HostTrainer:
             self._pool = self._new_pool(self._seeds(0, self.config.num_envs))
         self._timestep = self._pool.reset()
         self._episode_return[:] = 0.0
-        self._memory = fresh_memory(self.learner_setup, self.config.seeds, self.config.num_envs)
+        self._memory = initial_memories(self.learner_setup.algorithm, self.config.seeds,
+                                        self.config.num_envs)
         return self._timestep
 
     def _per_seed(self, batch: np.ndarray) -> np.ndarray:
@@ -270,7 +265,7 @@ class HostTrainer:
         timestep = self._eval_pool.reset(seeds)
         quota = np.tile(split_evenly(episodes, slots), (config.seeds, 1))
         tally = tally_start((config.seeds, slots))
-        memory = fresh_memory(self.learner_setup, config.seeds, slots)
+        memory = initial_memories(self.learner_setup.algorithm, config.seeds, slots)
         for _ in range(int(quota.max()) * spec.max_episode_steps):
             if np.all(tally.finished >= quota):
                 break
