@@ -99,6 +99,12 @@ class PPOConfig:
     num_minibatches: int = 1
     """Minibatches each pass is split into (`num_mini_batch`); must divide
     num_envs × rollout_length."""
+    minibatch_chunks: int = 1
+    """Sequential chunks each minibatch's network pass runs in (`cmat.algorithms.base.chunked`):
+    k > 1 keeps the activations of one chunk at a time and recomputes them for the backward
+    pass, so the gradient is the same (up to floating-point order) at about 1/k of the
+    activation memory. A memory knob for large minibatches (`benchmarks/throughput.py --preset
+    mava`); at small ones the recomputation costs time. Must divide the minibatch size."""
     clip_eps: float = 0.05
     """Clip range of the joint ratio and of the clipped value loss."""
     ent_coef: float = 0.01
@@ -290,6 +296,12 @@ def validate(config: TrainConfig) -> TrainConfig:
         (config.steps_per_update % ppo.num_minibatches == 0,
          f"num_envs * rollout_length ({config.steps_per_update}) must be divisible by "
          f"ppo.num_minibatches ({ppo.num_minibatches})"),
+        (ppo.minibatch_chunks > 0,
+         f"ppo.minibatch_chunks must be > 0, got {ppo.minibatch_chunks}"),
+        (ppo.num_minibatches <= 0 or ppo.minibatch_chunks <= 0
+         or config.steps_per_update // ppo.num_minibatches % ppo.minibatch_chunks == 0,
+         f"the minibatch size ({config.steps_per_update // max(ppo.num_minibatches, 1)}) must "
+         f"be divisible by ppo.minibatch_chunks ({ppo.minibatch_chunks})"),
         (ppo.joint_clip in JOINT_CLIPS,
          f"ppo.joint_clip must be one of {', '.join(JOINT_CLIPS)}, got {ppo.joint_clip!r}"),
         (ppo.entropy_reduction in ENTROPY_REDUCTIONS,

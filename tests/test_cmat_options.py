@@ -27,8 +27,8 @@ def batch_for(algorithm, spread: float = 0.3) -> tuple[dict, Batch]:
     keys = jax.random.split(jax.random.PRNGKey(7), 5)
     obs = jax.random.normal(keys[0], (32, 4, 5))
     mask = jnp.ones((32, 4, 3), bool)
-    params = algorithm.init(keys[1], obs[0], mask[0])
-    acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+    params = jax.jit(algorithm.init)(keys[1], obs[0], mask[0])
+    acted = jax.jit(jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0)))(
         params, obs, mask, jax.random.split(keys[2], 32))
     return params, Batch(
         obs, mask, acted.actions,

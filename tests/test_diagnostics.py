@@ -27,7 +27,7 @@ def fixed_batch(algo: str) -> tuple[object, dict, Batch]:
     keys = jax.random.split(jax.random.PRNGKey(3), 6)
     obs = jax.random.normal(keys[0], (64, 3, 5))
     mask = jnp.ones((64, 3, 4), bool).at[:, 2, 3].set(False)
-    params = algorithm.init(keys[1], obs[0], mask[0])
+    params = jax.jit(algorithm.init)(keys[1], obs[0], mask[0])
     acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
         params, obs, mask, jax.random.split(keys[2], 64))
     batch = Batch(

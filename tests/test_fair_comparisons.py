@@ -122,7 +122,7 @@ def test_transformers_start_with_the_reference_mat_gains(algo: str) -> None:
     network = load_config(overrides=[f"algo={algo}"]).network
     algorithm = build_algorithm(algo, network, spec(discrete=False))
     obs, mask = jnp.ones((3, 6)), jnp.ones((3, 4), bool)
-    params = algorithm.init(jax.random.PRNGKey(0), obs, mask)["params"]
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(0), obs, mask)["params"]
     found = kernels(params)
     def feed_forward(path: tuple[str, ...]) -> bool:
         return len(path) > 1 and (path[-2].startswith("FeedForward") or path[-2] == "feed_forward")
@@ -149,7 +149,9 @@ def test_transformers_start_with_the_reference_mat_gains(algo: str) -> None:
 def test_continuous_policies_start_at_std_sigmoid_one_half(algo: str) -> None:
     network = load_config(overrides=[f"algo={algo}"]).network
     algorithm = build_algorithm(algo, network, spec(discrete=False))
-    params = algorithm.init(jax.random.PRNGKey(0), jnp.ones((3, 6)), jnp.ones((3, 4), bool))
+    params = jax.jit(algorithm.init)(
+        jax.random.PRNGKey(0), jnp.ones((3, 6)), jnp.ones((3, 4), bool)
+    )
     log_stds = [np.asarray(leaf) for path, leaf in jax.tree_util.tree_leaves_with_path(params)
                 if "log_std" in jax.tree_util.keystr(path)]
     assert log_stds
@@ -189,7 +191,7 @@ def dead_agent_batch(algorithm, n: int, per_agent: bool, key: int = 0) -> Batch:
     keys = jax.random.split(jax.random.PRNGKey(key), 8)
     obs = jax.random.normal(keys[0], (5, n, 6))
     mask = jnp.ones((5, n, 4), bool)
-    params = algorithm.init(keys[1], obs[0], mask[0])
+    params = jax.jit(algorithm.init)(keys[1], obs[0], mask[0])
     acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
         params, obs, mask, jax.random.split(keys[2], 5)
     )
@@ -315,7 +317,7 @@ def test_mappo_critic_reads_the_smax_world_state() -> None:
     assert env.spec.state_dim == timestep.global_state.shape[0] > 0
     config = load_config(overrides=["env=smax:3m", "algo=mappo"])
     algorithm = build_algorithm("mappo", config.network, env.spec, config.ppo)
-    params = algorithm.init(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
     first = params["critic"]["params"]["MLPTrunk_0"]["Dense_0"]["kernel"]
     assert first.shape[0] == env.spec.state_dim
     value = algorithm.value(params, timestep.obs, timestep.global_state)
@@ -332,7 +334,7 @@ def test_mappo_critic_reads_the_smax_world_state() -> None:
 def test_without_a_global_state_the_critic_reads_all_observations() -> None:
     algorithm = build_algorithm("mappo", load_config().network, spec())
     obs = jax.random.normal(jax.random.PRNGKey(0), (3, 6))
-    params = algorithm.init(jax.random.PRNGKey(1), obs, jnp.ones((3, 4), bool))
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(1), obs, jnp.ones((3, 4), bool))
     assert params["critic"]["params"]["MLPTrunk_0"]["Dense_0"]["kernel"].shape[0] == 18
     assert float(algorithm.value(params, obs.at[2, 0].add(1.0))) != float(
         algorithm.value(params, obs))
@@ -346,7 +348,7 @@ def test_a_joint_log_ratio_of_100_over_27_agents_stays_finite(sign: float) -> No
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     obs = jax.random.normal(keys[0], (4, 27, 6))
     mask = jnp.ones((4, 27, 4), bool)
-    params = algorithm.init(keys[1], obs[0], mask[0])
+    params = jax.jit(algorithm.init)(keys[1], obs[0], mask[0])
     acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
         params, obs, mask, jax.random.split(keys[2], 4))
     batch = Batch(obs, mask, acted.actions, acted.log_probs - 100.0 / 27, acted.value,
@@ -575,6 +577,6 @@ def test_host_envs_report_active_agents_and_their_global_state() -> None:
     np.testing.assert_array_equal(steps[0].global_state, [1, 11])
     np.testing.assert_array_equal(steps[2].global_state, [0, 10])  # the next episode's first
     algorithm = build_algorithm("mappo", load_config().network, env.spec)
-    params = algorithm.init(jax.random.PRNGKey(0), jnp.asarray(first.obs),
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(0), jnp.asarray(first.obs),
                             jnp.asarray(first.action_mask))
     assert params["critic"]["params"]["MLPTrunk_0"]["Dense_0"]["kernel"].shape[0] == 2

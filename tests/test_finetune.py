@@ -171,7 +171,7 @@ def test_stopping_the_refinement_early_equals_the_first_iterations(source: str) 
     full = CMAT.build(network_config, spec).network
     obs = jax.random.normal(jax.random.PRNGKey(1), (2, 2, 5))
     mask = np.ones((2, 2, 3), bool)
-    params = full.init(jax.random.PRNGKey(0), obs, mask)
+    params = jax.jit(full.init)(jax.random.PRNGKey(0), obs, mask)
     _, captured = full.apply(
         params, obs, mask,
         capture_intermediates=lambda module, _: isinstance(module, ConsensusDecoder),

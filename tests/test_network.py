@@ -25,7 +25,7 @@ def build(discrete: bool, **network: object) -> tuple[CMAT, object, jax.Array, j
     obs = jax.random.normal(jax.random.PRNGKey(1), (3, N_AGENTS, OBS_DIM))
     mask = jax.random.bernoulli(jax.random.PRNGKey(2), 0.6, (3, N_AGENTS, N_ACTIONS))
     mask = mask.at[..., 0].set(True)
-    params = algorithm.init(jax.random.PRNGKey(0), obs[0], mask[0])
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(0), obs[0], mask[0])
     return algorithm, params, obs, mask
 
 

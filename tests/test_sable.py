@@ -216,7 +216,7 @@ def test_sable_ppo_update_moves_the_parameters_and_keeps_swiglu_at_zero() -> Non
     samples = 32
     obs = jax.random.normal(jax.random.PRNGKey(14), (samples, AGENTS, OBS_DIM))
     mask = random_masks(15, samples, AGENTS)
-    params = algorithm.init(jax.random.PRNGKey(16), obs[0], mask[0])
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(16), obs[0], mask[0])
     acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
         params, obs, mask, jax.random.split(jax.random.PRNGKey(17), samples)
     )
@@ -276,7 +276,7 @@ def test_acting_resets_the_state_exactly_at_an_episode_start() -> None:
     algorithm = setup.learner.algorithm
     obs = jax.random.normal(jax.random.PRNGKey(3), (3, setup.spec.obs_dim))
     mask = jnp.ones((3, setup.spec.action_dim), bool)
-    params = algorithm.init(jax.random.PRNGKey(4), obs, mask)
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(4), obs, mask)
     fresh = algorithm.initial_memory()
     used = jax.tree.map(lambda x: x + jax.random.normal(jax.random.PRNGKey(5), x.shape), fresh)
     used = used._replace(position=jnp.array(7))

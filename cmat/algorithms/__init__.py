@@ -34,6 +34,7 @@ OPTION_CAPABILITIES = {
     "ppo.entropy_reduction": ("joint_ratio", "mean"),
     "ppo.per_agent_gae": ("per_agent_values", False),
     "network.recurrent": ("recurrent", False),
+    "ppo.minibatch_chunks": ("minibatch_chunks", 1),
 }
 """Options only some algorithms have: field -> (the capability it needs, the value every
 algorithm accepts)."""

@@ -175,3 +175,28 @@ def initial_memories(algorithm: Algorithm, *batch: int) -> Any:
     () for feed-forward algorithms)."""
     return jax.tree.map(lambda x: jax.numpy.broadcast_to(x, (*batch, *jax.numpy.shape(x))),
                         algorithm.initial_memory())
+
+
+def chunked(function: Callable[..., Any], chunks: int, out_axes: Any = 0) -> Callable[..., Any]:
+    """`function` of arrays batched along their first axis [B, ...], run over `chunks`
+    sequential slices of B (`jax.lax.map`), each slice's forward pass recomputed for the
+    backward pass (`jax.checkpoint`) rather than kept: the same outputs and gradients up to
+    floating-point order, with the activation memory of B / chunks samples (`ppo.minibatch_
+    chunks`). `out_axes` is a prefix of the output tree as `jax.vmap` takes it: 0 for outputs
+    batched along the first axis, None for outputs equal in every slice (taken from the first).
+    chunks = 1 returns `function` itself. B must be divisible by chunks (`TrainConfig.validate`
+    checks it for minibatches)."""
+    if chunks == 1:
+        return function
+
+    def run(*args: Any) -> Any:
+        sliced = jax.tree.map(lambda x: x.reshape(chunks, x.shape[0] // chunks, *x.shape[1:]), args)
+        stacked = jax.lax.map(jax.checkpoint(lambda chunk: function(*chunk)), sliced)
+        return jax.tree.map(
+            lambda axis, x: jax.tree.map(
+                lambda leaf: leaf[0] if axis is None else leaf.reshape(-1, *leaf.shape[2:]), x
+            ),
+            out_axes, stacked, is_leaf=lambda node: node is None,
+        )
+
+    return run

@@ -20,7 +20,7 @@ import distrax
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params, active_mask
+from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked
 from cmat.algorithms.cmat_blocks import FINETUNE_TRAINABLE, finetune_labels
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
@@ -86,13 +86,17 @@ class CMAT(PPOAlgorithm):
 
     name: ClassVar[str] = "cmat"
     finetune_stages: ClassVar[tuple[str, ...]] = tuple(FINETUNE_TRAINABLE)
-    capabilities: ClassVar[frozenset[str]] = frozenset({"consensus", "joint_ratio"})
+    capabilities: ClassVar[frozenset[str]] = frozenset(
+        {"consensus", "joint_ratio", "minibatch_chunks"}
+    )
     network_fields: ClassVar[tuple[str, ...]] = tuple(f.name for f in fields(NetworkConfig))
 
     reference_defaults: ClassVar[dict[str, Any]] = TUNED_SETTINGS
     """The reference MAT's settings (the dataclass defaults and the suite's column) with the
     study's two changes (`TUNED_SETTINGS`); the paper's own are `--preset paper`."""
 
+    output_axes: ClassVar[Any] = PolicyOutput._make((0, None, 0, 0, 0, 0, 0))
+    """The network output's batch axes (`chunked`): the log-std is shared by every sample."""
     presets: ClassVar[dict[str, dict[str, Any]]] = {
         "paper": PAPER_SETTINGS, "tuned": TUNED_SETTINGS,
     }
@@ -142,17 +146,20 @@ class CMAT(PPOAlgorithm):
         return cast(jax.Array, self.network.apply(params, obs, method="value"))
 
     def log_ratio(
-        self, params: Params, batch: Batch
+        self, params: Params, batch: Batch, chunks: int = 1
     ) -> tuple[jax.Array, PolicyOutput, distrax.Distribution]:
         """log π(A, z | O) − log π_old(A, z | O) per sample: Σ_i of the per-agent log-ratios
         (eq. ratio), plus log π_c(z | O) − log π_c,old(z | O) with a stochastic consensus
-        (eq. joint-stochastic). Also returns the network output and the action distribution."""
+        (eq. joint-stochastic). Also returns the network output and the action distribution.
+        The network runs over the batch in `chunks` sequential slices (`chunked`)."""
         # `()` with a deterministic consensus, read only with a stochastic one.
         sampled: LatentSample = batch.extras
         latent: dict[str, Any] = {"latent": sampled.latent} if self.stochastic else {}
-        output = cast(
-            PolicyOutput, self.network.apply(params, batch.obs, batch.action_mask, **latent)
-        )
+        output = cast(PolicyOutput, chunked(
+            lambda obs, action_mask, given: self.network.apply(params, obs, action_mask, **given),
+            chunks,
+            self.output_axes,
+        )(batch.obs, batch.action_mask, latent))
         distribution = action_distribution(
             output.action_params, output.log_std, self.network.discrete
         )
@@ -176,7 +183,7 @@ class CMAT(PPOAlgorithm):
         [(1−ε)^k, (1+ε)^k] for k active agents instead of [1−ε, 1+ε] (eq. cmat);
         `entropy_reduction=sum` weights the entropy of the joint policy Σ_i H(π_i) instead of
         its mean over agents (n times the mean without active masks)."""
-        log_ratio, output, distribution = self.log_ratio(params, batch)
+        log_ratio, output, distribution = self.log_ratio(params, batch, ppo.minibatch_chunks)
         clip_range = None
         if ppo.joint_clip == "per_agent":
             alive = batch.alive if batch.alive is not None else jnp.ones(batch.log_probs.shape)

@@ -21,7 +21,7 @@ from typing import Any, ClassVar, cast
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params, active_mask
+from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     masked_mean,
@@ -45,7 +45,7 @@ class MAT(PPOAlgorithm):
     """Values are per agent ([n], `ppo.per_agent_gae`), else their team mean ([])."""
 
     name: ClassVar[str] = "mat"
-    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
+    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values", "minibatch_chunks"})
     network_fields: ClassVar[tuple[str, ...]] = (
         "n_embd", "n_head", "n_block", "init_gain", "log_std_init")
     """The encoder-decoder's sizes (MATNetwork)."""
@@ -132,16 +132,17 @@ class MAT(PPOAlgorithm):
             return self.encode(params, obs)[1]
         return cast(jax.Array, self.network.apply(params, obs, method="value"))
 
-    def teacher_forced(self, params: Params, batch: Batch, orders: jax.Array) -> MATOutput:
-        """Network outputs for every sample of the batch, decoded along orders [B, n]."""
+    def teacher_forced(
+        self, params: Params, batch: Batch, orders: jax.Array, chunks: int = 1
+    ) -> MATOutput:
+        """Network outputs for every sample of the batch, decoded along orders [B, n], in
+        `chunks` sequential slices of the batch (`chunked`)."""
         # `_make`: the axes spec holds ints and None where MATOutput declares arrays.
         out_axes = MATOutput._make((0, None, 0, 0))
-        return cast(
-            MATOutput,
-            jax.vmap(self.network.apply, in_axes=(None, 0, 0, 0, 0), out_axes=out_axes)(
-                params, batch.obs, batch.action_mask, batch.actions, orders
-            ),
-        )
+        per_sample = jax.vmap(self.network.apply, in_axes=(None, 0, 0, 0, 0), out_axes=out_axes)
+        return cast(MATOutput, chunked(
+            lambda *samples: per_sample(params, *samples), chunks, out_axes
+        )(batch.obs, batch.action_mask, batch.actions, orders))
 
     def loss_along(
         self,
@@ -154,7 +155,7 @@ class MAT(PPOAlgorithm):
         """Eq. mat with the actions decoded along orders [B, n], and every agent's value
         regressed on its target (per agent, or the team's) around its collecting-time value
         [B, n]; means over active agents with `ppo.active_masks`. Also returns the outputs."""
-        output = self.teacher_forced(params, batch, orders)
+        output = self.teacher_forced(params, batch, orders, ppo.minibatch_chunks)
         total, metrics = self.objective(output, batch, old_agent_values, ppo)
         return total, metrics, output
 

@@ -55,7 +55,7 @@ class PMAT(PPOAlgorithm):
     scorer: OrderScorer
 
     name: ClassVar[str] = "pmat"
-    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
+    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values", "minibatch_chunks"})
     network_fields: ClassVar[tuple[str, ...]] = MAT.network_fields
     """MAT's; the order scorer has MAT's width `n_embd` and gain `init_gain`."""
 

@@ -15,7 +15,7 @@ from cmat.algorithms.cmat import CMAT
 from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.triple_bert import TripleBERTNetwork
+from cmat.networks.triple_bert import TripleBERTNetwork, TripleBERTOutput
 
 
 @dataclass(frozen=True)
@@ -27,10 +27,11 @@ class TripleBERT(CMAT):
     """The paper's baseline setting: the reference MAT's (the dataclass defaults), trained as
     the paper trains CMAT (joint ratio clipped to [1 − ε, 1 + ε], target critic τ = 0.1)."""
     finetune_stages: ClassVar[tuple[str, ...]] = ()
-    capabilities: ClassVar[frozenset[str]] = frozenset({"joint_ratio"})
+    capabilities: ClassVar[frozenset[str]] = frozenset({"joint_ratio", "minibatch_chunks"})
     network_fields: ClassVar[tuple[str, ...]] = (
         "n_embd", "n_head", "n_block", "compressor_heads", "init_gain", "log_std_init")
     """CMAT's sizes without its decoder and consensus (TripleBERTNetwork)."""
+    output_axes: ClassVar[Any] = TripleBERTOutput._make((0, None, 0))
     finetune_labels = PPOAlgorithm.finetune_labels
 
     @classmethod

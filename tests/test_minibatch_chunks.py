@@ -1,0 +1,79 @@
+"""`ppo.minibatch_chunks`: the network pass over a minibatch in sequential recomputed slices
+gives the same loss and gradient with less activation memory, and configs that cannot use it
+are refused."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.flatten_util
+import numpy as np
+import pytest
+from test_cmat_options import batch_for
+
+from cmat.algorithms import build_algorithm
+from cmat.config import NetworkConfig, PPOConfig
+from cmat.envs.protocol import EnvSpec
+from cmat.errors import CmatError
+from cmat.resolve import load_config
+
+DISCRETE = EnvSpec("test", 4, 5, 3, True, 10, False)
+CONTINUOUS = EnvSpec("test", 4, 5, 3, False, 10, False)
+
+
+@pytest.mark.parametrize("algo, spec, network", [
+    ("cmat", CONTINUOUS, {"consensus_policy": "categorical"}),
+    ("pmat", CONTINUOUS, {}),
+    pytest.param("cmat", DISCRETE, {}, marks=pytest.mark.slow),
+    pytest.param("mat", DISCRETE, {}, marks=pytest.mark.slow),
+    pytest.param("triple_bert", CONTINUOUS, {}, marks=pytest.mark.slow),
+])
+def test_chunked_minibatch_gives_the_same_loss_and_gradient(algo, spec, network) -> None:
+    config = NetworkConfig(n_embd=8, init_gain=1.0, consensus_iterations=2, **network)
+    algorithm = build_algorithm(algo, config, spec)
+    params, batch = batch_for(algorithm)
+
+    def loss_and_grad(chunks: int):
+        ppo = dataclasses.replace(PPOConfig(), minibatch_chunks=chunks)
+        return jax.jit(jax.value_and_grad(lambda p: algorithm.loss(p, batch, ppo), has_aux=True))(
+            params)
+
+    (whole, whole_metrics), whole_grad = loss_and_grad(1)
+    (chunked, chunked_metrics), chunked_grad = loss_and_grad(4)
+    assert float(chunked) == pytest.approx(float(whole), rel=1e-5, abs=1e-7)
+    for name in ("policy_loss", "value_loss", "entropy"):
+        assert float(chunked_metrics[name]) == pytest.approx(
+            float(whole_metrics[name]), rel=1e-5, abs=1e-7)
+    flat_whole, _ = jax.flatten_util.ravel_pytree(whole_grad)
+    flat_chunked, _ = jax.flatten_util.ravel_pytree(chunked_grad)
+    scale = float(np.abs(flat_whole).max())
+    assert scale > 0
+    np.testing.assert_allclose(flat_chunked, flat_whole, rtol=1e-4, atol=1e-5 * scale)
+
+
+def test_chunks_shrink_the_compiled_gradients_working_memory() -> None:
+    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=32, consensus_iterations=1), DISCRETE)
+    params, batch = batch_for(algorithm)
+    batch = jax.tree.map(lambda x: np.concatenate([x] * 16), batch)
+
+    def working_memory(chunks: int) -> int:
+        ppo = dataclasses.replace(PPOConfig(), minibatch_chunks=chunks)
+        gradient = jax.jit(jax.grad(lambda p: algorithm.loss(p, batch, ppo)[0]))
+        return gradient.lower(params).compile().memory_analysis().temp_size_in_bytes
+
+    assert working_memory(8) < 0.5 * working_memory(1)
+
+
+@pytest.mark.parametrize("overrides, named", [
+    (["algo=mappo", "ppo.minibatch_chunks=2"], "ppo.minibatch_chunks=2 applies to"),
+    (["num_envs=4", "rollout_length=10", "ppo.minibatch_chunks=3"],
+     "minibatch size (40) must be divisible by ppo.minibatch_chunks (3)"),
+    (["num_envs=4", "rollout_length=10", "ppo.num_minibatches=2", "ppo.minibatch_chunks=40"],
+     "minibatch size (20) must be divisible by ppo.minibatch_chunks (40)"),
+    (["ppo.minibatch_chunks=0"], "ppo.minibatch_chunks must be > 0"),
+])
+def test_configs_that_cannot_chunk_are_refused_in_one_line(overrides, named) -> None:
+    with pytest.raises(CmatError, match=named.replace("(", r"\(").replace(")", r"\)")) as error:
+        load_config(overrides=overrides)
+    assert "\n" not in str(error.value)
