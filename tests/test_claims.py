@@ -46,26 +46,31 @@ def spec(tmp_path: Path) -> ExperimentSpec:
     return load_spec(path)
 
 
-LINES = {  # label: (variant, algo, figures, consensus source, m)
-    "CMAT": ("default", "cmat", ["main", "ablation"], "mixture", 3),
+TEAM = {"matrix:fig1": 2, "smax:3m": 3, "smax:2s3z": 5}
+"""n of each task: m = n resolves to a different count on each, as in a real summary."""
+LINES = {  # label: (variant, algo, figures, consensus source, m as configured)
+    "CMAT": ("default", "cmat", ["main", "ablation"], "mixture", "n"),
     "MAT": ("default", "mat", ["main", "ablation"], None, None),
     "MAPPO": ("default", "mappo", ["main", "ablation"], None, None),
-    "CMAT paper": ("paper", "cmat", ["main"], "mixture", 3),
-    "CMAT-ft": ("finetune_action", "cmat", ["main"], "mixture", 3),
-    "last": ("last", "cmat", ["ablation"], "last", 3),
-    "m = n/2": ("m_half", "cmat", ["ablation"], "mixture", 1),
+    "CMAT paper": ("paper", "cmat", ["main"], "mixture", "n"),
+    "CMAT-ft": ("finetune_action", "cmat", ["main"], "mixture", "n"),
+    "last": ("last", "cmat", ["ablation"], "last", "n"),
+    "m = n/2": ("m_half", "cmat", ["ablation"], "mixture", "n/2"),
 }
 
 
 def summary(finals: dict[str, dict[str, list[float]]]) -> dict[str, Any]:
-    """A summary as `summarise` writes it: finals per task and line label."""
+    """A summary as `summarise` writes it: finals per task and line label, m resolved against
+    the task's team."""
     tasks = []
     for task in TASKS:
         lines = {}
         for label, scores in finals.get(task, {}).items():
             variant, algo, figures, source, m = LINES[label]
+            iterations = None if m is None else TEAM[task] // (2 if m == "n/2" else 1)
             lines[label] = {"variant": variant, "algo": algo, "figures": figures,
-                            "finals": scores, "iterations": m, "consensus_source": source}
+                            "finals": scores, "iterations": iterations,
+                            "consensus_source": source}
         metric = "episode_return" if task.startswith("matrix:") else "win_rate"
         tasks.append({"env": task, "label": task, "metric": metric, "lines": lines})
     return {"tasks": tasks}

@@ -148,6 +148,8 @@ def judge_claims(summary: dict[str, Any], spec: ExperimentSpec) -> list[dict[str
     its statement, comparisons, the number of the spec's tasks it covers and its verdict."""
     finals: dict[str, dict[str, list[float]]] = {}
     lines: dict[str, dict[str, Any]] = {}
+    iterations: dict[str, dict[str, Any]] = {}
+    """m of each line on each task it has: m = n resolves to a different count per task."""
     for task in summary["tasks"]:
         if "unavailable" in task:
             continue
@@ -156,6 +158,7 @@ def judge_claims(summary: dict[str, Any], spec: ExperimentSpec) -> list[dict[str
         finals[task["env"]] = normalise(task_finals, task["metric"]) if task_finals else {}
         for label, line in task["lines"].items():
             lines.setdefault(label, line)
+            iterations.setdefault(label, {})[task["env"]] = line.get("iterations")
     game = {t: s for t, s in finals.items() if t.startswith("matrix:")}
     benchmark = {t: s for t, s in finals.items() if not t.startswith("matrix:")}
     spec_tasks = [e.id for e in spec.envs if e.unavailable is None]
@@ -196,12 +199,15 @@ def judge_claims(summary: dict[str, Any], spec: ExperimentSpec) -> list[dict[str
         claims.append(Claim("b", f"{CLAIMS['b']} ({label})", pairs(label, others, benchmark),
                             covered({lines[label]["variant"]}, False)))
     if ref_line is not None and reference is not None:
+        def same_m(label: str) -> bool:
+            shared = iterations[label].keys() & iterations[reference].keys()
+            return all(iterations[label][t] == iterations[reference][t] for t in shared)
+
         last = [label for label, line in lines.items() if line["algo"] == "cmat"
-                and line["consensus_source"] == "last" and not stage(label)
-                and line["iterations"] == ref_line["iterations"]]
+                and line["consensus_source"] == "last" and not stage(label) and same_m(label)]
         other_m = [label for label, line in lines.items() if line["algo"] == "cmat"
                    and line["consensus_source"] == ref_line["consensus_source"]
-                   and not stage(label) and line["iterations"] != ref_line["iterations"]]
+                   and not stage(label) and not same_m(label)]
         claims.append(Claim("c", CLAIMS["c"], pairs(reference, last, benchmark),
                             covered({lines[o]["variant"] for o in last}, False)))
         claims.append(Claim("d", CLAIMS["d"], pairs(reference, other_m, benchmark),
