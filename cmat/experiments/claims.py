@@ -148,8 +148,8 @@ def judge_claims(summary: dict[str, Any], spec: ExperimentSpec) -> list[dict[str
     its statement, comparisons, the number of the spec's tasks it covers and its verdict."""
     finals: dict[str, dict[str, list[float]]] = {}
     lines: dict[str, dict[str, Any]] = {}
+    # m of each line on each of its tasks: m = n resolves to a different count per task.
     iterations: dict[str, dict[str, Any]] = {}
-    """m of each line on each task it has: m = n resolves to a different count per task."""
     for task in summary["tasks"]:
         if "unavailable" in task:
             continue
