@@ -182,10 +182,10 @@ def chunked(function: Callable[..., Any], chunks: int, out_axes: Any = 0) -> Cal
     sequential slices of B (`jax.lax.map`), each slice's forward pass recomputed for the
     backward pass (`jax.checkpoint`) rather than kept: the same outputs and gradients up to
     floating-point order, with the activation memory of B / chunks samples
-    (`ppo.minibatch_chunks`). `out_axes` is a prefix of the output tree as `jax.vmap` takes it: 0 for outputs
-    batched along the first axis, None for outputs equal in every slice (taken from the first).
-    chunks = 1 returns `function` itself. B must be divisible by chunks (`TrainConfig.validate`
-    checks it for minibatches)."""
+    (`ppo.minibatch_chunks`). `out_axes` is a prefix of the output tree as `jax.vmap` takes
+    it: 0 for outputs batched along the first axis, None for outputs equal in every slice
+    (taken from the first). chunks = 1 returns `function` itself. B must be divisible by
+    chunks (`TrainConfig.validate` checks it for minibatches)."""
     if chunks == 1:
         return function
 
