@@ -241,6 +241,7 @@ def test_sable_ppo_update_moves_the_parameters_and_keeps_swiglu_at_zero() -> Non
     assert max(others) > 1e-4
 
 
+@pytest.mark.slow
 def test_sable_reaches_the_fig1_optimum_in_at_least_9_of_10_seeds() -> None:
     """Sable at its reference settings and half the matrix suite's budget (2,000 steps);
     measured: 10 of 10 seeds at 2,000 and at 4,000."""
