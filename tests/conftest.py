@@ -1,4 +1,5 @@
-"""One JAX compilation cache per test session, shared by the xdist workers.
+"""One JAX compilation cache per test session, shared by the xdist workers; XLA's optimisations
+skipped for the tests marked `quick_compiles` (the learning checks among them marked `optimised`).
 
 Many tests build the same small programs (a CMAT on ``matrix:fig1``, a SMAX 3m update) in
 separate closures; XLA's persistent cache keys on the compiled program, so the second build
@@ -9,7 +10,9 @@ never depends on what an earlier session compiled.
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 
+import jax
 import pytest
 
 CACHE_VARIABLE = "JAX_COMPILATION_CACHE_DIR"
@@ -31,3 +34,32 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         shutil.rmtree(directory, ignore_errors=True)
         os.environ.pop(CACHE_VARIABLE, None)
 
+
+def set_optimisations_off(off: bool) -> Iterator[None]:
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", off)
+    yield
+    jax.config.update("jax_disable_most_optimizations", previous)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def quick_compiles(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Modules marked `quick_compiles` run programs for milliseconds, so compiling is nearly all
+    their cost: skipping XLA's optimisations halves it, for their module fixtures and the
+    processes they start as well."""
+    if request.node.get_closest_marker("quick_compiles") is None:
+        yield
+        return
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+        yield from set_optimisations_off(True)
+
+
+@pytest.fixture(autouse=True)
+def quick_compiles_per_test(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A test marked `quick_compiles` (or in such a module) compiles without XLA's optimisations
+    unless it is a learning check, marked `slow` or `optimised`: those run long programs."""
+    marked = request.node.get_closest_marker
+    quick = marked("quick_compiles") is not None
+    yield from set_optimisations_off(
+        quick and marked("slow") is None and marked("optimised") is None)

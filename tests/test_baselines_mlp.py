@@ -4,7 +4,6 @@ HAPPO's sequential update and compounding factor."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
 from functools import partial
 
 import jax
@@ -25,6 +24,8 @@ from cmat.runners import trainer as trainer_lib
 from cmat.runners.learner import LearnerSetup
 from cmat.runners.trainer import JaxTrainer
 
+pytestmark = pytest.mark.quick_compiles
+
 SPEC = EnvSpec("test", 3, 5, 4, True, 10, False)
 NETWORK = NetworkConfig(n_embd=16, n_head=2)
 LOSS_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "loss")
@@ -36,16 +37,6 @@ def rows(tree: dict, agent: int) -> list[np.ndarray]:
 
 def differ(before: list, after: list) -> bool:
     return any(not np.array_equal(a, b) for a, b in zip(before, after))
-
-
-@pytest.fixture(scope="module", autouse=True)
-def quick_compiles() -> Iterator[None]:
-    """These programs run for milliseconds, so compiling is nearly all their cost: skipping XLA's
-    optimisations halves it (the flag is restored after this module)."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
 
 
 @pytest.fixture(scope="module", params=[

@@ -19,6 +19,8 @@ from cmat.cli import build_trainer, main
 from cmat.policy import load_policy
 from cmat.rundir import RunDir
 
+pytestmark = pytest.mark.quick_compiles
+
 OLD_RUNS = Path(__file__).parent / "data" / "runs_before_learner_split"
 
 

@@ -21,6 +21,8 @@ from cmat.rundir import RunDir
 from cmat.runners.base import TrainerState
 from cmat.runners.trainer import JaxTrainer
 
+pytestmark = pytest.mark.quick_compiles
+
 TINY = ["num_envs=4", "rollout_length=25", "log_interval=5", "ppo.epochs=2", "eval_episodes=4"]
 TRAIN = ["train", "--env", "matrix:fig1", "--steps", "2000", "--seeds", "2", "--set", *TINY]
 CHUNK_STEPS = 500

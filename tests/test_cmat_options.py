@@ -20,6 +20,8 @@ from cmat.resolve import load_config
 from cmat.runners.learner import make_batch, optimise
 from cmat.runners.trainer import build_setup, init_state
 
+pytestmark = pytest.mark.quick_compiles
+
 SPEC = EnvSpec("test", 4, 5, 3, True, 10, False)
 
 
@@ -48,8 +50,8 @@ def test_paper_options_give_the_papers_loss(cmat_batch) -> None:
     """Defaults: the clipped objective on the joint ratio with [1−ε, 1+ε] and the mean entropy."""
     algorithm, params, batch = cmat_batch
     ppo = PPOConfig()
-    _, metrics = algorithm.loss(params, batch, ppo)
-    log_ratio, _, distribution = algorithm.log_ratio(params, batch)
+    _, metrics = jax.jit(algorithm.loss, static_argnums=2)(params, batch, ppo)
+    log_ratio, _, distribution = jax.jit(algorithm.log_ratio)(params, batch)
     ratio = np.exp(np.asarray(log_ratio, np.float64))
     adv = np.asarray(batch.advantages)
     objective = np.minimum(ratio * adv, np.clip(ratio, 0.95, 1.05) * adv)
@@ -61,8 +63,8 @@ def test_paper_options_give_the_papers_loss(cmat_batch) -> None:
 def test_per_agent_joint_clip_widens_the_range_to_the_kth_power(cmat_batch) -> None:
     algorithm, params, batch = cmat_batch
     ppo = dataclasses.replace(PPOConfig(), joint_clip="per_agent")
-    _, metrics = algorithm.loss(params, batch, ppo)
-    log_ratio, _, _ = algorithm.log_ratio(params, batch)
+    _, metrics = jax.jit(algorithm.loss, static_argnums=2)(params, batch, ppo)
+    log_ratio, _, _ = jax.jit(algorithm.log_ratio)(params, batch)
     ratio = np.exp(np.asarray(log_ratio, np.float64))
     k = np.asarray(batch.alive).sum(axis=1)
     adv = np.asarray(batch.advantages)
@@ -72,7 +74,7 @@ def test_per_agent_joint_clip_widens_the_range_to_the_kth_power(cmat_batch) -> N
     assert float(metrics["clip_frac"]) == pytest.approx(outside.mean())
     paper = np.abs(ratio - 1) > 0.05
     assert outside.mean() < paper.mean()
-    entropy = algorithm.loss(params, batch, PPOConfig())[1]["entropy"]
+    entropy = jax.jit(algorithm.loss, static_argnums=2)(params, batch, PPOConfig())[1]["entropy"]
     assert float(metrics["entropy"]) == pytest.approx(float(entropy))
 
 
@@ -87,8 +89,9 @@ def test_one_agent_per_agent_clip_is_the_papers_clip() -> None:
 
 def test_entropy_sum_is_the_joint_policys_entropy(cmat_batch) -> None:
     algorithm, params, batch = cmat_batch
-    mean = algorithm.loss(params, batch, PPOConfig())[1]
-    summed = algorithm.loss(params, batch, dataclasses.replace(
+    loss = jax.jit(algorithm.loss, static_argnums=2)
+    mean = loss(params, batch, PPOConfig())[1]
+    summed = loss(params, batch, dataclasses.replace(
         PPOConfig(), entropy_reduction="sum"))[1]
     assert float(summed["entropy"]) == pytest.approx(4 * float(mean["entropy"]), rel=1e-6)
     assert float(summed["policy_loss"]) == float(mean["policy_loss"])
@@ -101,10 +104,10 @@ def test_kl_early_stop_skips_the_epochs_after_the_target() -> None:
                                         "rollout_length=5", "network.n_embd=8",
                                         "network.init_gain=1.0", "ppo.lr=0.01", *overrides])
         setup = build_setup(config)
-        state = init_state(setup, jax.random.PRNGKey(0))
+        state = jax.jit(lambda key: init_state(setup, key))(jax.random.PRNGKey(0))
         learner = state.learner
-        _, rollout = setup.collector.collect(learner.params, state.envs, learner.rng)
-        _, batch = make_batch(setup.learner, learner, rollout)
+        _, rollout = jax.jit(setup.collector.collect)(learner.params, state.envs, learner.rng)
+        _, batch = jax.jit(lambda s, r: make_batch(setup.learner, s, r))(learner, rollout)
         params, _, metrics = jax.jit(
             lambda p, o, b, k: optimise(setup.learner, p, o, b, k)
         )(learner.params, learner.opt_state, batch, jax.random.PRNGKey(1))

@@ -14,6 +14,7 @@ from cmat.cli import main
 from cmat.config import NetworkConfig, field_docs, field_names
 from cmat.envs import make_env
 
+pytestmark = pytest.mark.quick_compiles
 
 def test_every_config_field_has_a_docstring() -> None:
     docs = field_docs()

@@ -12,6 +12,8 @@ import sys
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.quick_compiles
+
 PROGRAM = r"""
 import json, sys
 import jax, numpy as np

@@ -18,6 +18,8 @@ from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.rundir import RunDir
 
+pytestmark = pytest.mark.quick_compiles
+
 SPEC = EnvSpec("test", 3, 5, 4, True, 10, False)
 NETWORK = NetworkConfig(n_embd=16, n_head=2, init_gain=1.0)
 
@@ -28,7 +30,7 @@ def fixed_batch(algo: str) -> tuple[object, dict, Batch]:
     obs = jax.random.normal(keys[0], (64, 3, 5))
     mask = jnp.ones((64, 3, 4), bool).at[:, 2, 3].set(False)
     params = jax.jit(algorithm.init)(keys[1], obs[0], mask[0])
-    acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+    acted = jax.jit(jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0)))(
         params, obs, mask, jax.random.split(keys[2], 64))
     batch = Batch(
         obs, mask, acted.actions, acted.log_probs + 0.2 * jax.random.normal(keys[3], (64, 3)),
@@ -44,9 +46,9 @@ def test_ratio_diagnostics_and_entropy_per_agent_equal_numpy(algo: str) -> None:
     ppo = PPOConfig(clip_eps=0.1, active_masks=True)
     _, metrics = jax.jit(algorithm.loss, static_argnums=2)(params, batch, ppo)
     if algo == "cmat":
-        _, _, distribution = algorithm.log_ratio(params, batch)
+        _, _, distribution = jax.jit(algorithm.log_ratio)(params, batch)
     else:
-        distribution = algorithm.distribution(params, batch.obs, batch.action_mask)
+        distribution = jax.jit(algorithm.distribution)(params, batch.obs, batch.action_mask)
     agent = np.asarray(distribution.log_prob(batch.actions) - batch.log_probs, np.float64)
     joint = agent.sum(axis=1)
     alive = np.asarray(batch.alive)
@@ -70,7 +72,7 @@ def test_ratio_diagnostics_and_entropy_per_agent_equal_numpy(algo: str) -> None:
 
 def test_block_gradient_norms_equal_numpy() -> None:
     algorithm, params, batch = fixed_batch("cmat")
-    grads = jax.grad(lambda p: algorithm.loss(p, batch, PPOConfig())[0])(params)
+    grads = jax.jit(jax.grad(lambda p: algorithm.loss(p, batch, PPOConfig())[0]))(params)
     norms = block_grad_norms(grads)
     assert set(norms) == {f"grad_norm_{name}" for name in (
         "encoder", "critic_compressor", "critic_mlp", "decoder", "actor_compressor", "actor_mlp")}
@@ -79,7 +81,8 @@ def test_block_gradient_norms_equal_numpy() -> None:
                       for leaf in jax.tree.leaves(block))
         assert float(norms[f"grad_norm_{name}"]) == pytest.approx(np.sqrt(squares), rel=1e-4)
     mappo, mappo_params, mappo_batch = fixed_batch("mappo")
-    mappo_grads = jax.grad(lambda p: mappo.loss(p, mappo_batch, PPOConfig())[0])(mappo_params)
+    mappo_grads = jax.jit(jax.grad(lambda p: mappo.loss(p, mappo_batch, PPOConfig())[0]))(
+        mappo_params)
     assert set(block_grad_norms(mappo_grads)) == {"grad_norm_actor", "grad_norm_critic"}
 
 

@@ -35,6 +35,8 @@ from cmat.experiments.statistics import aggregate, improvement_probability, iqm
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 
+pytestmark = pytest.mark.quick_compiles
+
 REPO = Path(__file__).resolve().parents[1]
 SMOKE = REPO / "experiments" / "smoke.yaml"
 CMAT_RUN = "runs/matrix_fig1/default/cmat-s0-1"

@@ -39,6 +39,8 @@ from cmat.runners import trainer as trainer_lib
 from cmat.runners.learner import make_batch, nonfinite_code
 from cmat.runners.trainer import JaxTrainer, build_setup, init_state
 
+pytestmark = pytest.mark.quick_compiles
+
 REFERENCE = {
     "cmat": (1.0, False, False),
     "triple_bert": (0.1, False, False),
@@ -83,7 +85,7 @@ def test_target_critic_follows_tau(algo: str, tau: list[str]) -> None:
         "env=matrix:fig1", f"algo={algo}", "num_envs=4", "rollout_length=5", "ppo.epochs=2", *tau,
     ])
     setup = build_setup(config)
-    state = init_state(setup, jax.random.PRNGKey(0))
+    state = jax.jit(lambda key: init_state(setup, key))(jax.random.PRNGKey(0))
     before = state.learner.target_params
     after, _ = jax.jit(lambda s: trainer_lib.update_step(setup, s))(state)
     tau = config.ppo.target_tau
@@ -192,7 +194,7 @@ def dead_agent_batch(algorithm, n: int, per_agent: bool, key: int = 0) -> Batch:
     obs = jax.random.normal(keys[0], (5, n, 6))
     mask = jnp.ones((5, n, 4), bool)
     params = jax.jit(algorithm.init)(keys[1], obs[0], mask[0])
-    acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+    acted = jax.jit(jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0)))(
         params, obs, mask, jax.random.split(keys[2], 5)
     )
     shape = (5, n) if per_agent else (5,)
@@ -281,7 +283,7 @@ def test_mat_gae_runs_per_agent_on_each_agents_value(per_agent: bool) -> None:
         f"ppo.per_agent_gae={str(per_agent).lower()}",
     ])
     setup = build_setup(config)
-    state = init_state(setup, jax.random.PRNGKey(0))
+    state = jax.jit(lambda key: init_state(setup, key))(jax.random.PRNGKey(0))
     learner = state.learner
     _, rollout = jax.jit(setup.collector.collect)(learner.params, state.envs, learner.rng)
     rng = np.random.default_rng(1)
@@ -292,9 +294,9 @@ def test_mat_gae_runs_per_agent_on_each_agents_value(per_agent: bool) -> None:
     _, batch = jax.jit(lambda s, r: make_batch(setup.learner, s, r))(learner, rollout)
     network = setup.learner.algorithm.network
     obs = np.concatenate([np.asarray(rollout.steps.obs), np.asarray(rollout.next_obs)[None]])
-    agent_values = np.asarray(jax.vmap(jax.vmap(
+    agent_values = np.asarray(jax.jit(jax.vmap(jax.vmap(
         lambda o: network.apply(learner.target_params, o, method=type(network).encode)[1]
-    ))(jnp.asarray(obs)))
+    )))(jnp.asarray(obs)))
     values = agent_values if per_agent else agent_values.mean(-1)
     extra = (None,) if per_agent else ()
     rewards = np.asarray(rollout.steps.reward)[(..., *extra)]
@@ -349,11 +351,11 @@ def test_a_joint_log_ratio_of_100_over_27_agents_stays_finite(sign: float) -> No
     obs = jax.random.normal(keys[0], (4, 27, 6))
     mask = jnp.ones((4, 27, 4), bool)
     params = jax.jit(algorithm.init)(keys[1], obs[0], mask[0])
-    acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+    acted = jax.jit(jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0)))(
         params, obs, mask, jax.random.split(keys[2], 4))
     batch = Batch(obs, mask, acted.actions, acted.log_probs - 100.0 / 27, acted.value,
                   jnp.full(4, sign), jnp.zeros(4), alive=jnp.ones((4, 27), bool))
-    log_ratio, _, _ = algorithm.log_ratio(params, batch)
+    log_ratio, _, _ = jax.jit(algorithm.log_ratio)(params, batch)
     np.testing.assert_allclose(log_ratio, 100.0, rtol=1e-4)
     (loss, _), grads = jax.jit(jax.value_and_grad(algorithm.loss, has_aux=True),
                                static_argnums=2)(params, batch, config.ppo)

@@ -24,6 +24,8 @@ from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners.trainer import JaxTrainer
 
+pytestmark = pytest.mark.quick_compiles
+
 TINY = ["num_envs=4", "rollout_length=25", "log_interval=5", "ppo.epochs=2", "eval_episodes=4"]
 BASE = ["train", "--env", "matrix:fig1", "--steps", "500", "--seeds", "2", "--set", *TINY]
 
@@ -172,16 +174,16 @@ def test_stopping_the_refinement_early_equals_the_first_iterations(source: str) 
     obs = jax.random.normal(jax.random.PRNGKey(1), (2, 2, 5))
     mask = np.ones((2, 2, 3), bool)
     params = jax.jit(full.init)(jax.random.PRNGKey(0), obs, mask)
-    _, captured = full.apply(
-        params, obs, mask,
+    _, captured = jax.jit(lambda p: full.apply(
+        p, obs, mask,
         capture_intermediates=lambda module, _: isinstance(module, ConsensusDecoder),
         mutable=["intermediates"],
-    )
+    ))(params)
     vectors = captured["intermediates"]["decoder"]["__call__"][0]
     assert vectors.shape == (2, 5, 16)
     for k in (0, 1, 4):
         short = CMAT.build(dataclasses.replace(network_config, consensus_iterations=k), spec)
-        output = short.network.apply(with_iterations(params, k), obs, mask)
+        output = jax.jit(short.network.apply)(with_iterations(params, k), obs, mask)
         expected = vectors[:, k] if source == "last" else Compressor(16, 4, 16).apply(
             {"params": params["params"]["actor_compressor"]}, vectors[:, : k + 1]
         )

@@ -34,6 +34,8 @@ from cmat.resolve import load_config
 from cmat.runners.base import TrainerState
 from cmat.runners.host import HostTrainer
 
+pytestmark = pytest.mark.quick_compiles
+
 HERE = __name__
 HAS_MUJOCO = importlib.util.find_spec("gymnasium_robotics") is not None
 HAS_GRF = importlib.util.find_spec("gfootball") is not None

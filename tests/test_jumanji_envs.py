@@ -26,6 +26,8 @@ from cmat.resolve import resolve_config
 from cmat.rundir import RunDir
 from cmat.runners.evaluation import tally_result, tally_start, tally_step
 
+pytestmark = pytest.mark.quick_compiles
+
 NUM_ENVS = 4
 HAS_BRAX = importlib.util.find_spec("brax") is not None
 

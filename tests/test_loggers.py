@@ -12,6 +12,8 @@ from cmat.cli import main
 from cmat.rundir import RunDir
 from cmat.runners import loop
 
+pytestmark = pytest.mark.quick_compiles
+
 
 def test_wandb_logs_offline_into_the_run_directory(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch

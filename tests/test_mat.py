@@ -22,6 +22,8 @@ from cmat.networks.heads import action_distribution
 from cmat.resolve import load_config
 from cmat.runners.trainer import JaxTrainer
 
+pytestmark = pytest.mark.quick_compiles
+
 TINY = [
     "num_envs=8", "rollout_length=10", "ppo.epochs=2", "network.n_embd=16",
     "total_steps=240", "log_interval=3",

@@ -19,6 +19,8 @@ from cmat.networks.layers import DecoderBlock, MultiHeadAttention, dense
 N_AGENTS, OBS_DIM, N_ACTIONS = 5, 7, 6
 
 
+pytestmark = pytest.mark.quick_compiles
+
 def build(discrete: bool, **network: object) -> tuple[CMAT, object, jax.Array, jax.Array]:
     spec = EnvSpec("test", N_AGENTS, OBS_DIM, N_ACTIONS, discrete, 10, False)
     algorithm = CMAT.build(dataclasses.replace(NetworkConfig(n_embd=32, n_head=2), **network), spec)
@@ -35,7 +37,7 @@ def test_permuting_agents_permutes_policies_and_keeps_value_and_consensus(discre
     permutation = np.array([3, 0, 4, 1, 2])
 
     def apply(o, m):
-        return algorithm.network.apply(params, o, m)
+        return jax.jit(algorithm.network.apply)(params, o, m)
 
     original, permuted = apply(obs, mask), apply(obs[:, permutation], mask[:, permutation])
     np.testing.assert_allclose(permuted.value, original.value, rtol=1e-5, atol=1e-5)
@@ -54,17 +56,18 @@ def test_permuting_agents_permutes_policies_and_keeps_value_and_consensus(discre
 
 def test_different_observations_change_the_consensus() -> None:
     algorithm, params, obs, mask = build(True)
-    out = algorithm.network.apply(params, obs, mask)
+    out = jax.jit(algorithm.network.apply)(params, obs, mask)
     assert not np.allclose(out.consensus[0], out.consensus[1])
 
 
 def test_masked_actions_have_zero_probability_and_are_never_sampled() -> None:
     algorithm, params, obs, mask = build(True)
     keys = jax.random.split(jax.random.PRNGKey(4), 2000)
-    acted = jax.vmap(algorithm.act, in_axes=(None, None, None, 0))(params, obs[0], mask[0], keys)
+    act = jax.jit(jax.vmap(algorithm.act, in_axes=(None, None, None, 0)))
+    acted = act(params, obs[0], mask[0], keys)
     chosen_available = jnp.take_along_axis(mask[0][None], acted.actions[..., None], axis=-1)
     assert bool(jnp.all(chosen_available))
-    output = algorithm.network.apply(params, obs, mask)
+    output = jax.jit(algorithm.network.apply)(params, obs, mask)
     probs = jax.nn.softmax(output.action_params, axis=-1)
     assert float(jnp.max(jnp.where(mask, 0.0, probs))) == 0.0
     distribution = action_distribution(output.action_params, output.log_std, True)
@@ -99,7 +102,7 @@ def test_decoder_cache_matches_full_causal_pass() -> None:
     tokens = jax.random.normal(jax.random.PRNGKey(0), (2, 6, 16))
     memory = jax.random.normal(jax.random.PRNGKey(1), (2, 4, 16))
     params = block.init(jax.random.PRNGKey(2), tokens, memory)
-    full = block.apply(params, tokens, memory)
+    full = jax.jit(block.apply)(params, tokens, memory)
 
     def iterate(module: DecoderBlock) -> jax.Array:
         encoded, cache, outputs = module.encode_memory(memory), None, []
@@ -108,7 +111,7 @@ def test_decoder_cache_matches_full_causal_pass() -> None:
             outputs.append(y[:, 0])
         return jnp.stack(outputs, axis=1)
 
-    cached = block.apply(params, method=iterate)
+    cached = jax.jit(lambda p: block.apply(p, method=iterate))(params)
     np.testing.assert_allclose(cached, full, rtol=1e-5, atol=1e-5)
 
 
@@ -135,7 +138,7 @@ def test_iterations_and_consensus_source_change_the_output() -> None:
         "last": {"consensus_source": "last"},
     }.items():
         algorithm, params, _, _ = build(True, **overrides)
-        outputs[name] = algorithm.network.apply(params, obs, mask)
+        outputs[name] = jax.jit(algorithm.network.apply)(params, obs, mask)
         assert np.all(np.isfinite(outputs[name].action_params))
     assert algorithm.network.iterations == N_AGENTS
     for other in ("m0", "last"):
@@ -145,5 +148,5 @@ def test_iterations_and_consensus_source_change_the_output() -> None:
 def test_m_zero_uses_e0_alone() -> None:
     algorithm, params, obs, mask = build(True, consensus_iterations=0)
     assert "decoder" not in params["params"]
-    out = algorithm.network.apply(params, obs, mask)
+    out = jax.jit(algorithm.network.apply)(params, obs, mask)
     assert out.consensus.shape == (3, 32)

@@ -21,6 +21,8 @@ from cmat.rundir import RunDir
 from cmat.runners.base import EVAL_SEED_OFFSET, seed_keys
 from cmat.runners.trainer import JaxTrainer
 
+pytestmark = pytest.mark.quick_compiles
+
 SMAX_RUN = ["train", "--env", "smax:3m", "--steps", "128", "--seeds", "2", "--set",
             "num_envs=4", "rollout_length=16", "ppo.epochs=1", "eval_episodes=4", "seed=5"]
 
@@ -129,6 +131,7 @@ def test_runs_that_cannot_be_loaded_are_one_error(smax_run: Path, tmp_path: Path
 SIGNAL = "pettingzoo:test_host_envs:signal_game"
 
 
+@pytest.mark.optimised
 def test_the_readme_pettingzoo_loop_reaches_the_optimum(tmp_path: Path) -> None:
     """The signal game's settings measured in tests/test_host_envs.py (2,400 steps reach the
     optimum return 5); the README's loop with the loaded policy scores 5 in every episode."""

@@ -33,6 +33,8 @@ from cmat.runners.host import HostTrainer
 from cmat.runners.learner import Rollout, make_batch
 
 STEPS, AGENTS, HEAD, ACTIONS, OBS_DIM = 6, 3, 4, 5, 7
+pytestmark = pytest.mark.quick_compiles
+
 STARTS = jnp.array([False, True, False, False, True, False])
 """Episodes restart inside the sequence, once inside a chunk of 3 (t = 1) and once at a chunk's
 first step (t = 4 with chunks of 2)."""
@@ -118,8 +120,8 @@ def sable_network(memory: bool, discrete: bool = True) -> tuple[SableNetwork, di
     )
     obs = jnp.zeros((AGENTS, OBS_DIM))
     actions = jnp.zeros((AGENTS,), jnp.int32) if discrete else jnp.zeros((AGENTS, ACTIONS))
-    params = network.init(jax.random.PRNGKey(5), obs, jnp.ones((AGENTS, ACTIONS), bool),
-                          actions, jnp.arange(AGENTS))
+    params = jax.jit(network.init)(jax.random.PRNGKey(5), obs, jnp.ones((AGENTS, ACTIONS), bool),
+                                   actions, jnp.arange(AGENTS))
     # SwiGLU starts (and, as in the reference, stays) at zero; random weights here exercise it.
     leaves, tree = jax.tree.flatten(params)
     keys = jax.random.split(jax.random.PRNGKey(6), len(leaves))
@@ -157,9 +159,8 @@ def test_acting_step_by_step_equals_the_teacher_forced_sequence(memory: bool) ->
         actions.append(acted)
         log_probs.append(log_prob)
         values.append(value)
-    output, final = network.apply(
+    output, final = jax.jit(functools.partial(network.apply, method="sequence"))(
         params, obs, masks, jnp.stack(actions), memory_state, starts, positions,
-        method="sequence",
     )
     forced_values = output.agent_values
     forced = jax.nn.log_softmax(output.action_params)
@@ -174,13 +175,14 @@ def test_feedforward_teacher_forcing_along_any_order_equals_acting_along_it() ->
     network, params = sable_network(memory=False)
     obs = jax.random.normal(jax.random.PRNGKey(11), (AGENTS, OBS_DIM))
     mask = random_masks(12, AGENTS)
+    encode = jax.jit(functools.partial(network.apply, method="encode"))
+    decode = jax.jit(functools.partial(network.apply, method="decode"))
+    forward = jax.jit(network.apply)
     for seed in range(3):
         order = jax.random.permutation(jax.random.PRNGKey(seed), AGENTS)
-        encoded, _ = network.apply(params, obs, method="encode")
-        actions, log_probs = network.apply(
-            params, encoded, mask, order, jax.random.PRNGKey(13 + seed), method="decode"
-        )
-        output = network.apply(params, obs, mask, actions, order)
+        encoded, _ = encode(params, obs)
+        actions, log_probs = decode(params, encoded, mask, order, jax.random.PRNGKey(13 + seed))
+        output = forward(params, obs, mask, actions, order)
         forced = jax.nn.log_softmax(output.action_params)
         np.testing.assert_allclose(
             jnp.take_along_axis(forced, actions[:, None], -1)[:, 0], log_probs, atol=1e-5
@@ -217,7 +219,7 @@ def test_sable_ppo_update_moves_the_parameters_and_keeps_swiglu_at_zero() -> Non
     obs = jax.random.normal(jax.random.PRNGKey(14), (samples, AGENTS, OBS_DIM))
     mask = random_masks(15, samples, AGENTS)
     params = jax.jit(algorithm.init)(jax.random.PRNGKey(16), obs[0], mask[0])
-    acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+    acted = jax.jit(jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0)))(
         params, obs, mask, jax.random.split(jax.random.PRNGKey(17), samples)
     )
     batch = Batch(obs, mask, acted.actions, acted.log_probs, acted.value,
@@ -383,7 +385,8 @@ def test_training_pass_over_collected_sequences_reproduces_acting(
         assert bool(jnp.any(steps.start[1:])) and bool(jnp.any(~steps.start[1:]))
         _, batch = jax.jit(lambda r: make_batch(setup, learner, r))(rollout)
         assert batch.obs.shape[:2] == (4, 12) and batch.starts.shape == (4, 12)
-        values = jax.vmap(algorithm.sequence_values, in_axes=(None, 0, 1, 1, 1), out_axes=1)(
+        values = jax.jit(jax.vmap(algorithm.sequence_values, in_axes=(None, 0, 1, 1, 1),
+                                  out_axes=1))(
             learner.params, rollout.memory, steps.obs, steps.global_state, steps.start
         )
         np.testing.assert_allclose(values, steps.value, atol=1e-4)

@@ -19,6 +19,8 @@ from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
 from cmat.resolve import load_config
 
+pytestmark = pytest.mark.quick_compiles
+
 AGENTS, ACTIONS, OBS_DIM, TEAMS = 4, 5, 6, 64
 POLICIES = ("categorical", "gaussian")
 
@@ -124,7 +126,7 @@ def test_categorical_consensus_represents_a_correlated_joint_policy_no_product_c
     algorithm = build(policy, agents=2, actions=3, init_gain=1.0)
     obs, mask = jnp.eye(2, OBS_DIM), jnp.ones((2, 3), bool)
     target = jnp.zeros((3, 3)).at[0, 0].set(0.5).at[2, 2].set(0.5)
-    params = algorithm.init(jax.random.PRNGKey(0), obs, mask)
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(0), obs, mask)
     optimizer = optax.adam(0.02)
 
     @jax.jit
@@ -138,7 +140,8 @@ def test_categorical_consensus_represents_a_correlated_joint_policy_no_product_c
     opt_state = optimizer.init(params)
     for _ in range(300):
         params, opt_state = fit_step(params, opt_state)
-    joint = np.asarray(joint_distribution(algorithm, params, obs, mask), np.float64)
+    joint = np.asarray(jax.jit(lambda p: joint_distribution(algorithm, p, obs, mask))(params),
+                       np.float64)
     np.testing.assert_allclose(joint.sum(), 1.0, rtol=1e-5)
     gap = joint[0, 0] * joint[2, 2] - joint[0, 2] * joint[2, 0]
     if policy == "categorical":

@@ -17,6 +17,8 @@ from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.trainer import JaxTrainer
 
+pytestmark = pytest.mark.quick_compiles
+
 TINY = ["num_envs=8", "rollout_length=10", "ppo.epochs=2", "network.n_embd=16", "eval_episodes=4"]
 
 
@@ -64,10 +66,10 @@ def test_cmat_loss_matches_numpy_reference_on_a_fixed_batch() -> None:
     batch = fixed_batch()
     spec = EnvSpec("test", 3, 5, 4, True, 10, False)
     algorithm = CMAT.build(NetworkConfig(n_embd=16, n_head=2), spec)
-    params = algorithm.init(jax.random.PRNGKey(0), batch.obs[0], batch.action_mask[0])
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(0), batch.obs[0], batch.action_mask[0])
     ppo = PPOConfig(clip_eps=0.2)
-    total, metrics = algorithm.loss(params, batch, ppo)
-    output = algorithm.network.apply(params, batch.obs, batch.action_mask)
+    total, metrics = jax.jit(algorithm.loss, static_argnums=2)(params, batch, ppo)
+    output = jax.jit(algorithm.network.apply)(params, batch.obs, batch.action_mask)
     expected = numpy_cmat_loss(
         np.asarray(output.action_params, np.float64), np.asarray(output.value, np.float64), batch,
         ppo,
@@ -81,12 +83,12 @@ def test_joint_ratio_is_one_at_the_collecting_parameters() -> None:
     batch = fixed_batch(seed=1)
     spec = EnvSpec("test", 3, 5, 4, True, 10, False)
     algorithm = CMAT.build(NetworkConfig(n_embd=16), spec)
-    params = algorithm.init(jax.random.PRNGKey(1), batch.obs[0], batch.action_mask[0])
-    acted = jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0))(
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(1), batch.obs[0], batch.action_mask[0])
+    acted = jax.jit(jax.vmap(algorithm.act, in_axes=(None, 0, 0, 0)))(
         params, batch.obs, batch.action_mask, jax.random.split(jax.random.PRNGKey(2), 12)
     )
     batch = batch._replace(actions=acted.actions, log_probs=acted.log_probs)
-    _, metrics = algorithm.loss(params, batch, PPOConfig())
+    _, metrics = jax.jit(algorithm.loss, static_argnums=2)(params, batch, PPOConfig())
     expected = -float(jnp.mean(batch.advantages))
     assert float(metrics["policy_loss"]) == pytest.approx(expected, abs=1e-5)
     assert float(metrics["approx_kl"]) == pytest.approx(0.0, abs=1e-6)
@@ -96,7 +98,7 @@ def test_joint_ratio_is_one_at_the_collecting_parameters() -> None:
 def test_target_critic_is_soft_updated_after_each_update() -> None:
     config = load_config(overrides=["env=matrix:fig1", "ppo.target_tau=0.25", *TINY])
     setup = trainer_lib.build_setup(config)
-    state = trainer_lib.init_state(setup, jax.random.PRNGKey(0))
+    state = jax.jit(lambda key: trainer_lib.init_state(setup, key))(jax.random.PRNGKey(0))
     perturbed = jax.tree.map(lambda x: x + 1.0, state.learner.target_params)
     state = state.replace(learner=state.learner.replace(target_params=perturbed))
     new_state, _ = jax.jit(lambda s: trainer_lib.update_step(setup, s))(state)
@@ -128,6 +130,7 @@ def test_make_train_is_one_pure_program() -> None:
     assert np.all(np.isfinite(np.asarray(metrics["value_loss"])))
 
 
+@pytest.mark.optimised
 def test_fig1_cmat_reaches_the_optimum_in_at_least_9_of_10_seeds() -> None:
     """Paper Fig. 1: the greedy joint action must be (B, B), payoff 100, not the (A, A) trap."""
     config = load_config(overrides=[
