@@ -75,7 +75,8 @@ def group_alive(group: int) -> bool:
 def grid(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, str]:
     """The smoke grid killed (SIGKILL to the experiment process alone) once its first run is
     complete and its second half done, then run again to the end. The process group is stopped
-    around the kill, so a run cannot finish in the moment between the check and the kill."""
+    before each look at the checkpoint and stays stopped through the kill, so no run can move
+    on between the look and the kill."""
     out = tmp_path_factory.mktemp("experiment") / "smoke"
     log = out.parent / "killed.log"
     with log.open("w") as file:
@@ -85,11 +86,15 @@ def grid(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, str]:
         )
     try:
         deadline = time.monotonic() + 900
-        while checkpoint_steps(out / MAT_RUN) != 500:
+        while True:
+            os.killpg(process.pid, signal.SIGSTOP)
+            time.sleep(0.01)  # a process running on the other core stops within this
+            if checkpoint_steps(out / MAT_RUN) == 500:
+                break
+            os.killpg(process.pid, signal.SIGCONT)
             assert process.poll() is None, log.read_text()
             assert time.monotonic() < deadline, log.read_text()
-            time.sleep(0.1)
-        os.killpg(process.pid, signal.SIGSTOP)  # no run step between seeing 500 and the kill
+            time.sleep(0.02)
         os.kill(process.pid, signal.SIGKILL)
         process.wait()
         os.killpg(process.pid, signal.SIGCONT)  # the runs wake to their parent's death
