@@ -12,7 +12,6 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 
-import jax
 import pytest
 
 CACHE_VARIABLE = "JAX_COMPILATION_CACHE_DIR"
@@ -36,6 +35,8 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 def set_optimisations_off(off: bool) -> Iterator[None]:
+    import jax  # not at the top: JAX reads JAX_COMPILATION_CACHE_DIR when it is first imported
+
     previous = jax.config.read("jax_disable_most_optimizations")
     jax.config.update("jax_disable_most_optimizations", off)
     yield
