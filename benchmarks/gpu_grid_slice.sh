@@ -15,19 +15,10 @@ out=${1:?usage: gpu_grid_slice.sh OUT PATTERN...}
 shift
 [ $# -gt 0 ] || { echo "usage: gpu_grid_slice.sh OUT PATTERN..." >&2; exit 2; }
 limit=${GPU_SLICE_SECONDS:-480}
-PY=${PYTHON:-python3}
 mkdir -p "$out"
 exec > >(tee "$out/slice.log") 2>&1
-if [ -d .whl ]; then
-  "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-    --target /tmp/site .whl/*.whl || exit 1
-  export PYTHONPATH=/tmp/site:$PWD
-else
-  export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
-fi
-export PYTHONUNBUFFERED=1
-command -v nvidia-smi >/dev/null && nvidia-smi -L
-"$PY" -c "import jax; print('jax', jax.__version__, jax.devices())" || exit 1
+# shellcheck source=benchmarks/gpu_env.sh
+source benchmarks/gpu_env.sh || exit 1
 start=$(date +%s)
 timeout "$limit" "$PY" -m cmat experiment experiments/smax_benchmark.yaml --out "$out/grid" \
   --parallel 1 --only "$@"
