@@ -163,6 +163,11 @@ def build_parser() -> argparse.ArgumentParser:
                             help="run only the grid's runs whose names (ENV/VARIANT/ALGO-sA-B, "
                                  "as --dry-run lists them) match a shell pattern, e.g. "
                                  "'smax_2s3z/*' '*/default/mappo-*'")
+    experiment.add_argument("--export", type=Path, metavar="DIR",
+                            help="copy the complete runs' results without checkpoints "
+                                 "(config, metrics, checkpoint header) into DIR and report "
+                                 "there, to commit or share; a copy of DIR continues the grid "
+                                 "elsewhere as --out")
     experiment.set_defaults(handler=experiment_command)
     return parser
 
@@ -344,7 +349,8 @@ def experiment_command(args: argparse.Namespace) -> None:
     from cmat.experiments.runner import run_experiment
 
     run_experiment(args.spec, out=args.out, parallel=args.parallel, ray_address=args.ray,
-                   dry_run=args.dry_run, report_only=args.report_only, only=args.only)
+                   dry_run=args.dry_run, report_only=args.report_only, only=args.only,
+                   export=args.export)
 
 
 def render_command(args: argparse.Namespace) -> None:

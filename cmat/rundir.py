@@ -10,6 +10,9 @@ Layout::
 
 A checkpoint file is a magic line, a JSON header line (env_steps, size, sha256) and the trainer's
 bytes, replaced atomically, so a reader sees either the previous or the new checkpoint whole.
+An exported copy of a run (`RunDir.export`: results without checkpoints, to share or commit)
+holds config.yaml, metrics.csv and `checkpoints/latest.json`, the header of the checkpoint it
+left out; it reads as complete at that step but cannot be resumed or fine-tuned from.
 Metric rows are appended before the checkpoint of their chunk is written; on resume, rows past
 the checkpoint's env_steps belong to a chunk that never finished and are dropped.
 """
@@ -22,6 +25,7 @@ import io
 import json
 import math
 import os
+import shutil
 import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -79,6 +83,11 @@ class RunDir:
     @property
     def checkpoint_path(self) -> Path:
         return self.path / "checkpoints" / "latest.ckpt"
+
+    @property
+    def header_path(self) -> Path:
+        """Where an exported copy keeps the header of the checkpoint it left out."""
+        return self.path / "checkpoints" / "latest.json"
 
     @property
     def curve_path(self) -> Path:
@@ -163,7 +172,9 @@ class RunDir:
         """The trainer bytes and env steps of the latest checkpoint, checked against its header."""
         path = self.checkpoint_path
         if not path.is_file():
-            raise CmatError(f"no checkpoint in {self.path}")
+            kept = (" (an exported copy: it keeps the run's results, not its checkpoint)"
+                    if self.header_path.is_file() else "")
+            raise CmatError(f"no checkpoint in {self.path}{kept}")
         raw = path.read_bytes()
         if not raw.startswith(CHECKPOINT_MAGIC):
             raise CmatError(f"corrupt checkpoint: {path} (not a cmat checkpoint)")
@@ -178,6 +189,44 @@ class RunDir:
         if sha256(data) != digest:
             raise CmatError(f"corrupt checkpoint: {path} (checksum mismatch)")
         return data, env_steps
+
+    def checkpoint_steps(self) -> tuple[int, bool]:
+        """(env steps of the latest checkpoint, whether its bytes are here): those of a checked
+        checkpoint, else those an exported copy recorded in `header_path`. CmatError where
+        there is neither, or the one there is corrupt."""
+        if self.checkpoint_path.exists() or not self.header_path.exists():
+            return self.load_checkpoint()[1], True
+        try:
+            return int(json.loads(self.header_path.read_text())["env_steps"]), False
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
+            raise CmatError(f"corrupt checkpoint header: {self.header_path}") from None
+
+    def export(self, target: Path) -> RunDir:
+        """Copy this run's results to `target` without the checkpoint's bytes: config.yaml,
+        metrics.csv and the checkpoint's header as `checkpoints/latest.json`. A copy already
+        at `target` is replaced whole (built beside it, then swapped in)."""
+        if self.checkpoint_path.exists() or not self.header_path.exists():
+            data, steps = self.load_checkpoint()
+            header = {"env_steps": steps, "size": len(data), "sha256": sha256(data)}
+        else:
+            self.checkpoint_steps()
+            header = json.loads(self.header_path.read_text())
+        target = Path(target)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}."))
+        try:
+            copy = RunDir(staging)
+            shutil.copyfile(self.config_path, copy.config_path)
+            shutil.copyfile(self.metrics_path, copy.metrics_path)
+            copy.header_path.parent.mkdir()
+            copy.header_path.write_text(json.dumps(header) + "\n")
+            if target.exists():
+                shutil.rmtree(target)
+            staging.rename(target)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        return RunDir(target)
 
     def append_metrics(self, rows: list[Row]) -> None:
         """Append rows (NaN as `nan`, missing columns empty, other keys ignored) and sync them to

@@ -198,6 +198,45 @@ def test_report_only_reports_the_runs_on_disk_and_starts_none(
     assert "--report-only: no experiment directory" in one_error_line(capsys.readouterr().err)
 
 
+def test_an_export_keeps_results_not_checkpoints_and_continues_the_grid_elsewhere(
+    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    exported = tmp_path / "committed"
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--report-only",
+                 "--export", str(exported)]) == 0
+    assert not list(exported.rglob("*.ckpt")) and (exported / "spec.yaml").is_file()
+    for run in (CMAT_RUN, MAT_RUN, STAGE_RUN):
+        metrics = (exported / run / "metrics.csv").read_bytes()
+        assert metrics == (out / run / "metrics.csv").read_bytes()
+        header = json.loads((exported / run / "checkpoints" / "latest.json").read_text())
+        data, steps = RunDir(out / run).load_checkpoint()
+        assert header["env_steps"] == steps and header["size"] == len(data)
+    assert ((exported / "results.md").read_text().split("## Runs")[0]
+            == (out / "results.md").read_text().split("## Runs")[0])
+
+    elsewhere = Path(shutil.copytree(exported, tmp_path / "elsewhere"))
+    shutil.rmtree(elsewhere / STAGE_RUN)
+    (elsewhere / MAT_RUN / "checkpoints" / "latest.json").write_text("{not json")
+    done = experiment(str(SMOKE), "--out", str(elsewhere))
+    assert done.returncode == 0, done.stdout + done.stderr
+    cmat, mat, stage = (run.removeprefix("runs/") for run in (CMAT_RUN, MAT_RUN, STAGE_RUN))
+    assert (f"redo    {cmat}: exported without its checkpoint, which {stage} needs"
+            in done.stdout)
+    assert f"redo    {mat}: corrupt checkpoint header: " in done.stdout
+    assert done.stdout.index(f"[start] {cmat}") < done.stdout.index(f"[start] {stage}")
+    retrained = RunDir(elsewhere / CMAT_RUN).read_metrics()
+    assert [row["episode_return"] for row in retrained] == [
+        row["episode_return"] for row in RunDir(out / CMAT_RUN).read_metrics()]
+    assert checkpoint_steps(elsewhere / STAGE_RUN) == 500
+
+    capsys.readouterr()
+    assert main(["train", "--resume", str(exported / CMAT_RUN), "--steps", "2000"]) == 2
+    assert "an exported copy" in one_error_line(capsys.readouterr().err)
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--export", str(out)]) == 2
+    assert "is the experiment directory itself" in one_error_line(capsys.readouterr().err)
+
+
 def test_corrupt_and_partial_run_directories_are_reported_and_redone(
     grid: tuple[Path, bytes, str], tmp_path: Path
 ) -> None:

@@ -123,6 +123,25 @@ def inspect_all(plan: Plan) -> None:
         run.found = run.status
 
 
+def retrain_exported_bases(runs: list[Run]) -> list[Run]:
+    """`runs` with, before the first fine-tuning stage to run from it, every complete base run
+    that is an exported copy: a stage starts from its base's checkpoint, which an export leaves
+    out, so the base is trained again (same config and seeds) and the copy discarded."""
+    ordered: list[Run] = []
+    for run in runs:
+        base = run.base
+        if (run.status in (NEW, REDO) and base is not None and base.status == FINISHED
+                and not RunDir(base.path).checkpoint_path.is_file()):
+            base.status = REDO
+            base.note = f"exported without its checkpoint, which {run.name} needs"
+            run.note = f"after {base.name}"
+        if base is not None and base.status == REDO and base not in ordered:
+            ordered.append(base)
+        if run not in ordered:
+            ordered.append(run)
+    return ordered
+
+
 def order_variants(variants: tuple[Variant, ...]) -> list[Variant]:
     """Variants with every fine-tuning stage after the variant it starts from."""
     ordered: list[Variant] = []
@@ -205,7 +224,7 @@ def inspect(run: Run) -> tuple[str, str]:
     if differs is not None:
         return REDO, f"config differs from the spec ({differs})"
     try:
-        _, steps = run_dir.load_checkpoint()
+        steps, present = run_dir.checkpoint_steps()
     except CmatError as error:
         return REDO, str(error)
     target = expected.budget_steps
@@ -215,8 +234,11 @@ def inspect(run: Run) -> tuple[str, str]:
         problem = metrics_problem(run_dir, steps, config)
         if problem is not None:
             return REDO, problem
+    kept = "" if present else " (exported: results without the checkpoint)"
     if steps == target:
-        return FINISHED, f"complete at {steps} env steps"
+        return FINISHED, f"complete at {steps} env steps{kept}"
+    if not present:
+        return REDO, f"exported at {steps} of {target} env steps, without the checkpoint to resume"
     return RESUME, f"at {steps} of {target} env steps"
 
 

@@ -28,10 +28,12 @@ from cmat.experiments.plan import (
     inspect_all,
     make_plan,
     print_plan,
+    retrain_exported_bases,
     say,
 )
 from cmat.experiments.report import write_report
 from cmat.experiments.spec import load_spec
+from cmat.rundir import RunDir
 
 
 def run_experiment(
@@ -42,20 +44,29 @@ def run_experiment(
     dry_run: bool = False,
     report_only: bool = False,
     only: list[str] | None = None,
+    export: Path | None = None,
 ) -> Plan:
     """Plan, execute and report the experiment of `spec_path` in `out`; with `report_only`,
     report the complete runs already in `out` and start none (without the directory's lock,
     so it can report a grid another process is still running). `only` (shell patterns on run
     names `ENV/VARIANT/ALGO-sFIRST-LAST`) runs just the matching runs of the grid; the report
-    still covers every complete run."""
+    still covers every complete run. `export` copies the results of every complete run, without
+    checkpoints, into that directory and reports there (`export_results`)."""
     spec = load_spec(spec_path)
     if parallel is not None and parallel <= 0:
         raise CmatError(f"--parallel must be > 0, got {parallel}")
-    if dry_run and report_only:
-        raise CmatError("--dry-run and --report-only exclude each other")
+    if dry_run and (report_only or export is not None):
+        other = "--report-only" if report_only else "--export"
+        raise CmatError(f"--dry-run and {other} exclude each other")
     out = (Path(out) if out is not None else Path("runs") / "experiments" / spec.name).absolute()
+    if export is not None:
+        export = Path(export).absolute()
+        if export == out:
+            raise CmatError(f"--export {export} is the experiment directory itself")
     plan = make_plan(spec, out)
     selected = select(plan, only)
+    if not report_only:
+        selected = retrain_exported_bases(selected)
     if dry_run:
         print_plan(plan)
         say_selection(selected, plan, only)
@@ -65,6 +76,8 @@ def run_experiment(
     out.mkdir(parents=True, exist_ok=True)
     with nullcontext() if report_only else experiment_lock(out):
         inspect_all(plan)  # again: another experiment may have held the directory until now
+        if not report_only:
+            selected = retrain_exported_bases(select(plan, only))
         print_plan(plan)
         say_selection(selected, plan, only)
         if spec.path.resolve() != (out / "spec.yaml").resolve():
@@ -82,6 +95,8 @@ def run_experiment(
         written = write_report(plan)
         for path in written:
             say(f"wrote {path}")
+    if export is not None:
+        export_results(plan, export)
     failed = [run for run in plan.runs if run.outcome not in (None, "ok")]
     if failed:
         raise CmatError(
@@ -110,3 +125,20 @@ def say_selection(selected: list[Run], plan: Plan, only: list[str] | None) -> No
     if only is not None:
         say(f"--only {' '.join(only)}: {len(selected)} of {len(plan.runs)} runs: "
             + ", ".join(run.name for run in selected))
+
+
+def export_results(plan: Plan, target: Path) -> None:
+    """Copy every complete run of `plan` into `target` as results without checkpoints
+    (`RunDir.export`), with the spec, then write the report there from every complete run
+    `target` holds, so `target` can be committed or shared. Runs `target` holds that `plan`'s
+    directory lacks stay. `target` then serves as `--out` for `--report-only`, and a copy of it
+    as `--out` to continue the grid on another machine: exported runs count as complete (a
+    fine-tuning stage still to run retrains its base first)."""
+    complete = [run for run in plan.runs if run.complete]
+    for run in complete:
+        RunDir(run.path).export(target / "runs" / run.name)
+    shutil.copyfile(plan.spec.path, target / "spec.yaml")
+    say(f"exported {len(complete)} complete runs (results without checkpoints) to {target}")
+    exported = make_plan(plan.spec, target)
+    for path in write_report(exported):
+        say(f"wrote {path}")
