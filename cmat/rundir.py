@@ -6,13 +6,15 @@ Layout::
     DIR/metrics.csv            one row per seed and chunk: kind (train|eval), seed, env_steps, ...
     DIR/tb/                    TensorBoard events
     DIR/checkpoints/latest.ckpt
+    DIR/sessions.jsonl         one line per training session: where it ran, for how long
     DIR/curve.png
 
 A checkpoint file is a magic line, a JSON header line (env_steps, size, sha256) and the trainer's
 bytes, replaced atomically, so a reader sees either the previous or the new checkpoint whole.
 An exported copy of a run (`RunDir.export`: results without checkpoints, to share or commit)
 holds config.yaml, metrics.csv and `checkpoints/latest.json`, the header of the checkpoint it
-left out; it reads as complete at that step but cannot be resumed or fine-tuned from.
+left out, and sessions.jsonl; it reads as complete at that step but cannot be resumed or
+fine-tuned from.
 Metric rows are appended before the checkpoint of their chunk is written; on resume, rows past
 the checkpoint's env_steps belong to a chunk that never finished and are dropped.
 """
@@ -26,10 +28,13 @@ import json
 import math
 import os
 import shutil
+import socket
 import tempfile
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from tensorboardX import SummaryWriter
 
@@ -88,6 +93,10 @@ class RunDir:
     def header_path(self) -> Path:
         """Where an exported copy keeps the header of the checkpoint it left out."""
         return self.path / "checkpoints" / "latest.json"
+
+    @property
+    def sessions_path(self) -> Path:
+        return self.path / "sessions.jsonl"
 
     @property
     def curve_path(self) -> Path:
@@ -218,6 +227,8 @@ class RunDir:
             copy = RunDir(staging)
             shutil.copyfile(self.config_path, copy.config_path)
             shutil.copyfile(self.metrics_path, copy.metrics_path)
+            if self.sessions_path.is_file():
+                shutil.copyfile(self.sessions_path, copy.sessions_path)
             copy.header_path.parent.mkdir()
             copy.header_path.write_text(json.dumps(header) + "\n")
             if target.exists():
@@ -227,6 +238,21 @@ class RunDir:
             shutil.rmtree(staging, ignore_errors=True)
             raise
         return RunDir(target)
+
+    def sessions(self) -> list[dict[str, Any]]:
+        """The training sessions recorded so far (`Session.record`); unreadable lines, such as
+        a run's from before this record existed, are skipped."""
+        if not self.sessions_path.is_file():
+            return []
+        sessions = []
+        for line in self.sessions_path.read_text(errors="replace").splitlines():
+            try:
+                entry = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(entry, dict):
+                sessions.append(entry)
+        return sessions
 
     def append_metrics(self, rows: list[Row]) -> None:
         """Append rows (NaN as `nan`, missing columns empty, other keys ignored) and sync them to
@@ -318,3 +344,30 @@ def atomic_write(path: Path, data: bytes) -> None:
         os.fsync(directory)
     finally:
         os.close(directory)
+
+
+class Session:
+    """One training session of a run (a `cmat train` or `finetune`, or a `--resume`): where it
+    ran (host, JAX backend and device, CPU cores) and its wall-clock seconds and env steps so far,
+    rewritten as the last line of sessions.jsonl after every chunk, so a killed session keeps
+    its record up to its last checkpoint."""
+
+    def __init__(self, run_dir: RunDir, env_steps: int) -> None:
+        import jax
+
+        device = jax.devices()[0]
+        self.run_dir = run_dir
+        self.earlier = run_dir.sessions()
+        self.start = time.monotonic()
+        self.entry: dict[str, Any] = {
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": socket.gethostname(),
+            "backend": jax.default_backend(), "device": device.device_kind,
+            "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+            else os.cpu_count(),
+            "from_steps": env_steps, "to_steps": env_steps, "seconds": 0.0,
+        }
+
+    def record(self, env_steps: int) -> None:
+        self.entry.update(to_steps=env_steps, seconds=round(time.monotonic() - self.start, 1))
+        lines = [json.dumps(entry) + "\n" for entry in (*self.earlier, self.entry)]
+        atomic_write(self.run_dir.sessions_path, "".join(lines).encode())

@@ -123,6 +123,15 @@ def test_killed_grid_resumes_without_redoing_finished_runs(grid: tuple[Path, byt
         rows = RunDir(out / run).read_metrics()
         keys = Counter((r["kind"], r["seed"], r["env_steps"]) for r in rows)
         assert set(keys.values()) == {1} and len(keys) == 2 * 2 * 2
+    sessions = RunDir(out / MAT_RUN).sessions()
+    spans = [(s["from_steps"], s["to_steps"]) for s in sessions]
+    assert spans[-1] == (500, 1000) and spans[:-1] in ([], [(0, 500)])  # killed before or after
+    assert all(s["backend"] == "cpu" and s["seconds"] > 0 for s in sessions)
+    summary = json.loads((out / "results.json").read_text())
+    assert summary["compute"]["cpu (cpu)"]["runs"] == 3
+    assert summary["compute"]["cpu (cpu)"]["hours"] * 3600 == pytest.approx(sum(
+        s["seconds"] for run in (CMAT_RUN, MAT_RUN, STAGE_RUN)
+        for s in RunDir(out / run).sessions()))
     assert checkpoint_steps(out / STAGE_RUN) == 500
     stage = RunDir(out / STAGE_RUN).config()
     assert stage.finetune == "action" and stage.finetune_from == str(out / CMAT_RUN)
@@ -209,6 +218,7 @@ def test_an_export_keeps_results_not_checkpoints_and_continues_the_grid_elsewher
     for run in (CMAT_RUN, MAT_RUN, STAGE_RUN):
         metrics = (exported / run / "metrics.csv").read_bytes()
         assert metrics == (out / run / "metrics.csv").read_bytes()
+        assert RunDir(exported / run).sessions() == RunDir(out / run).sessions()
         header = json.loads((exported / run / "checkpoints" / "latest.json").read_text())
         data, steps = RunDir(out / run).load_checkpoint()
         assert header["env_steps"] == steps and header["size"] == len(data)

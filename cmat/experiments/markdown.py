@@ -91,10 +91,19 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
             note = f" ({row['note']})" if row.get("note") else ""
             out.append(f"| {row['suite']} ({row['tasks']} tasks) | {row['algorithm']} | "
                        f"{row['value']:.3g} | {row['env_steps']:.0e} | {row['source']}{note} |")
-    out += ["", "## Runs", "", "| run | found | this time |", "|---|---|---|"]
+    out += ["", "## Runs", ""]
+    compute = summary.get("compute") or {}
+    if compute:
+        out += ["Training wall time of the runs on disk (each run's sessions.jsonl; runs "
+                "without that record are not counted): " + "; ".join(
+                    f"{entry['hours']:.1f} h on {where} over {entry['runs']:.0f} runs"
+                    for where, entry in compute.items()) + ".", ""]
+    out += ["| run | found | this time | trained |", "|---|---|---|---|"]
     for run in summary["runs"]:
         found = run["status"] + (f": {run['note']}" if run["note"] else "")
-        out.append(f"| {run['run']} | {found} | {run['outcome'] or '—'} |")
+        trained = ", ".join(f"{seconds / 60:.0f} min on {where}"
+                            for where, seconds in run.get("seconds", {}).items())
+        out.append(f"| {run['run']} | {found} | {run['outcome'] or '—'} | {trained or '—'} |")
     return "\n".join(out) + "\n"
 
 

@@ -32,8 +32,9 @@ from cmat.experiments.lines import (
 )
 from cmat.experiments.markdown import markdown
 from cmat.experiments.marl_eval import marl_eval_data
-from cmat.experiments.plan import Plan
+from cmat.experiments.plan import Plan, Run
 from cmat.experiments.statistics import aggregate
+from cmat.rundir import RunDir
 
 
 def write_report(plan: Plan) -> list[Path]:
@@ -96,7 +97,32 @@ def summarise(
         "suite_published": matching_suite_aggregates(
             load_suite_aggregates(), [env.id for env in plan.spec.envs]),
         "runs": [{"run": run.name, "status": run.found, "note": run.note,
-                  "outcome": run.outcome} for run in plan.runs],
+                  "outcome": run.outcome, "seconds": training_seconds(run)}
+                 for run in plan.runs],
     }
+    summary["compute"] = compute_totals(summary["runs"])
     summary["claims"] = judge_claims(summary, plan.spec)
     return summary
+
+
+def training_seconds(run: Run) -> dict[str, float]:
+    """Wall-clock seconds `run` has trained so far (its directory's sessions.jsonl, which runs
+    from before that record existed lack) per place it ran, 'BACKEND (DEVICE KIND)'."""
+    seconds: dict[str, float] = {}
+    if not run.path.is_dir():
+        return seconds
+    for session in RunDir(run.path).sessions():
+        where = f"{session.get('backend', '?')} ({session.get('device', '?')})"
+        seconds[where] = seconds.get(where, 0.0) + float(session.get("seconds", 0.0))
+    return seconds
+
+
+def compute_totals(runs: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Per place ('BACKEND (DEVICE KIND)'): the runs that trained there and their total hours."""
+    totals: dict[str, dict[str, float]] = {}
+    for run in runs:
+        for where, seconds in run["seconds"].items():
+            entry = totals.setdefault(where, {"runs": 0, "hours": 0.0})
+            entry["runs"] += 1
+            entry["hours"] += seconds / 3600
+    return totals

@@ -17,7 +17,7 @@ from tqdm import tqdm
 from cmat.config import TrainConfig
 from cmat.errors import CmatError
 from cmat.plots import plot_runs
-from cmat.rundir import DIAGNOSTIC_COLUMNS, PER_RUN_PREFIXES, Row, RunDir
+from cmat.rundir import DIAGNOSTIC_COLUMNS, PER_RUN_PREFIXES, Row, RunDir, Session
 
 if TYPE_CHECKING:
     from cmat.runners.base import Trainer, TrainerState
@@ -38,6 +38,7 @@ def run_training(
     loss, gradient norm or parameter raises `CmatError` naming the update, before anything of it
     is written, so the last good checkpoint stays as it was. A new run starts from `start`
     where given (a fine-tuning run's state, cmat.runners.finetune), else `trainer.init()`.
+    Each session of the run (this call) is recorded in sessions.jsonl (`Session`).
     """
     config = trainer.config
     if resume:
@@ -54,6 +55,7 @@ def run_training(
         state = trainer.init() if start is None else start
         done = trainer.env_steps(state)
         run_dir.save_checkpoint(trainer.to_bytes(state), done)
+    session = Session(run_dir, done)
     remaining = (config.budget_steps - done) // config.steps_per_update
     chunks = [config.updates_per_log] * (remaining // config.updates_per_log)
     chunks += [remaining % config.updates_per_log] if remaining % config.updates_per_log else []
@@ -65,6 +67,7 @@ def run_training(
         ):
             for updates in chunks:
                 state = run_chunk(trainer, state, run_dir, writer, bar, updates)
+                session.record(trainer.env_steps(state))
     except KeyboardInterrupt:
         run_dir.truncate_metrics(run_dir.load_checkpoint()[1])
         raise
