@@ -107,7 +107,7 @@ def test_decoder_cache_matches_full_causal_pass() -> None:
     def iterate(module: DecoderBlock) -> jax.Array:
         encoded, cache, outputs = module.encode_memory(memory), None, []
         for k in range(tokens.shape[1]):
-            y, cache = module.step(tokens[:, k : k + 1], cache, encoded)
+            y, cache = module.step(tokens[:, k : k + 1], cache, encoded, k, tokens.shape[1])
             outputs.append(y[:, 0])
         return jnp.stack(outputs, axis=1)
 

@@ -123,7 +123,9 @@ class ConsensusDecoder(nn.Module):
         for k in range(self.iterations):
             x = (sequence[-1] + positions[k])[..., None, :]
             for layer, block in enumerate(blocks):
-                x, caches[layer] = block.step(x, caches[layer], memories[layer])
+                x, caches[layer] = block.step(
+                    x, caches[layer], memories[layer], k, self.iterations
+                )
             sequence.append(x[..., 0, :])
         return jnp.stack(sequence, axis=-2)
 

@@ -39,6 +39,7 @@ from cmat.networks.layers import (
     ObservationEncoder,
     dense,
     extend,
+    filled,
 )
 
 
@@ -80,17 +81,17 @@ class MATDecodeBlock(nn.Module):
         self.norms = [nn.LayerNorm() for _ in range(3)]
 
     def step(
-        self, token: jax.Array, agent: jax.Array, cache: BlockCache | None
+        self, token: jax.Array, agent: jax.Array, cache: BlockCache | None, position: int,
+        length: int,
     ) -> tuple[jax.Array, BlockCache]:
-        """One position: token and agent [1, d], given the cache of the positions before it."""
-        token_kv = extend(
-            None if cache is None else cache.tokens, self.token_attention.project_memory(token)
-        )
-        x = self.norms[0](token + self.token_attention.attend(token, *token_kv))
-        feature_kv = extend(
-            None if cache is None else cache.features, self.agent_attention.project_memory(x)
-        )
-        y = self.norms[1](agent + self.agent_attention.attend(agent, *feature_kv))
+        """One position of `length`: token and agent [1, d], given the cache of the positions
+        before it (None at position 0)."""
+        token_kv = extend(None if cache is None else cache.tokens,
+                          self.token_attention.project_memory(token), position, length)
+        x = self.norms[0](token + self.token_attention.attend(token, *filled(token_kv, position)))
+        feature_kv = extend(None if cache is None else cache.features,
+                            self.agent_attention.project_memory(x), position, length)
+        y = self.norms[1](agent + self.agent_attention.attend(agent, *filled(feature_kv, position)))
         return self.norms[2](y + self.feed_forward(y)), BlockCache(token_kv, feature_kv)
 
     def __call__(self, tokens: jax.Array, agents: jax.Array) -> jax.Array:
@@ -180,7 +181,7 @@ class MATNetwork(nn.Module):
         for k in range(n):
             x = self.embed(previous[None])
             for layer, block in enumerate(self.blocks):
-                x, caches[layer] = block.step(x, agents[k : k + 1], caches[layer])
+                x, caches[layer] = block.step(x, agents[k : k + 1], caches[layer], k, n)
             params, log_std = self.policy_params(x[0], masks[k])
             distribution = action_distribution(params, log_std, self.discrete)
             if keys[k] is None:
