@@ -12,7 +12,7 @@ from matplotlib.image import imread
 from cmat.config import TrainConfig
 from cmat.errors import CmatError
 from cmat.plots import plot_runs, run_names
-from cmat.rundir import COLUMNS, RunDir
+from cmat.rundir import COLUMNS, RunDir, Session
 
 
 def snapshot(path: Path) -> dict[str, bytes]:
@@ -169,3 +169,35 @@ def test_plot_of_a_run_without_evaluations_is_an_error(tmp_path: Path) -> None:
     with pytest.raises(CmatError, match="no evaluation results"):
         plot_runs([run.path], tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()
+
+
+def test_sessions_append_after_earlier_ones_and_skip_unreadable_lines(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path / "run", TrainConfig())
+    run.sessions_path.write_text('{"from_steps": 0, "to_steps": 64, "seconds": 2.0}\n'
+                                 "half a line from a crash\n[1, 2]\n")
+    session = Session(run, 64)
+    session.record(128)
+    session.record(192)
+    sessions = run.sessions()
+    assert [(s["from_steps"], s["to_steps"]) for s in sessions] == [(0, 64), (64, 192)]
+    assert sessions[1]["backend"] == "cpu" and sessions[1]["cpus"] >= 1
+    assert sessions[1]["seconds"] >= 0
+
+
+def test_an_exported_copy_has_results_and_the_checkpoint_header_not_its_bytes(
+    tmp_path: Path,
+) -> None:
+    run = RunDir.create(tmp_path / "run", TrainConfig())
+    run.append_metrics(eval_rows([100], 2, win_rate=True))
+    run.save_checkpoint(b"trainer bytes", 100)
+    copy = run.export(tmp_path / "copy")
+    assert not copy.checkpoint_path.exists() and copy.checkpoint_steps() == (100, False)
+    assert copy.read_metrics() == run.read_metrics() and copy.config() == run.config()
+    again = copy.export(tmp_path / "again")
+    assert again.header_path.read_text() == copy.header_path.read_text()
+    with pytest.raises(CmatError, match="an exported copy"):
+        copy.load_checkpoint()
+    copy.header_path.write_text("{}")
+    with pytest.raises(CmatError, match="corrupt checkpoint header"):
+        copy.checkpoint_steps()
+    assert run.checkpoint_steps() == (100, True)
