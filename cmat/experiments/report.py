@@ -107,18 +107,26 @@ def summarise(
 
 def training_seconds(run: Run) -> dict[str, float]:
     """Wall-clock seconds `run` has trained so far (its directory's sessions.jsonl, which runs
-    from before that record existed lack) per place it ran, 'BACKEND (DEVICE KIND)'."""
+    from before that record existed lack) per place it ran (`place`)."""
     seconds: dict[str, float] = {}
     if not run.path.is_dir():
         return seconds
     for session in RunDir(run.path).sessions():
-        where = f"{session.get('backend', '?')} ({session.get('device', '?')})"
+        where = place(session)
         seconds[where] = seconds.get(where, 0.0) + float(session.get("seconds", 0.0))
     return seconds
 
 
+def place(session: dict[str, Any]) -> str:
+    """Where a session ran: 'cpu (N cores)', or 'BACKEND (DEVICE KIND)' on an accelerator."""
+    backend = session.get("backend", "?")
+    if backend == "cpu":
+        return f"cpu ({session.get('cpus', '?')} cores)"
+    return f"{backend} ({session.get('device', '?')})"
+
+
 def compute_totals(runs: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
-    """Per place ('BACKEND (DEVICE KIND)'): the runs that trained there and their total hours."""
+    """Per place (`place`): the runs that trained there and their total hours."""
     totals: dict[str, dict[str, float]] = {}
     for run in runs:
         for where, seconds in run["seconds"].items():
