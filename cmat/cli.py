@@ -168,6 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
                                  "(config, metrics, checkpoint header) into DIR and report "
                                  "there, to commit or share; a copy of DIR continues the grid "
                                  "elsewhere as --out")
+    experiment.add_argument("--carry", action="store_true",
+                            help="with --export: also copy the checkpoints the grid still needs "
+                                 "(partial runs, and bases of fine-tuning stages still to run), "
+                                 "so a copy of DIR continues them instead of starting over")
     experiment.set_defaults(handler=experiment_command)
     return parser
 
@@ -350,7 +354,7 @@ def experiment_command(args: argparse.Namespace) -> None:
 
     run_experiment(args.spec, out=args.out, parallel=args.parallel, ray_address=args.ray,
                    dry_run=args.dry_run, report_only=args.report_only, only=args.only,
-                   export=args.export)
+                   export=args.export, carry=args.carry)
 
 
 def render_command(args: argparse.Namespace) -> None:

@@ -14,7 +14,8 @@ bytes, replaced atomically, so a reader sees either the previous or the new chec
 An exported copy of a run (`RunDir.export`: results without checkpoints, to share or commit)
 holds config.yaml, metrics.csv and `checkpoints/latest.json`, the header of the checkpoint it
 left out, and sessions.jsonl; it reads as complete at that step but cannot be resumed or
-fine-tuned from.
+fine-tuned from. A carried copy (`RunDir.export(..., checkpoint=True)`) keeps the checkpoint
+instead, to continue the run on another machine.
 Metric rows are appended before the checkpoint of their chunk is written; on resume, rows past
 the checkpoint's env_steps belong to a chunk that never finished and are dropped.
 """
@@ -210,10 +211,14 @@ class RunDir:
         except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
             raise CmatError(f"corrupt checkpoint header: {self.header_path}") from None
 
-    def export(self, target: Path) -> RunDir:
+    def export(self, target: Path, checkpoint: bool = False) -> RunDir:
         """Copy this run's results to `target` without the checkpoint's bytes: config.yaml,
-        metrics.csv and the checkpoint's header as `checkpoints/latest.json`. A copy already
-        at `target` is replaced whole (built beside it, then swapped in)."""
+        metrics.csv, sessions.jsonl and the checkpoint's header as `checkpoints/latest.json`;
+        with `checkpoint`, the checked checkpoint itself instead of its header, so the copy
+        can be resumed or fine-tuned from. A copy already at `target` is replaced whole (built
+        beside it, then swapped in). CmatError where the checkpoint is missing or corrupt."""
+        if checkpoint:
+            self.load_checkpoint()
         if self.checkpoint_path.exists() or not self.header_path.exists():
             data, steps = self.load_checkpoint()
             header = {"env_steps": steps, "size": len(data), "sha256": sha256(data)}
@@ -230,7 +235,10 @@ class RunDir:
             if self.sessions_path.is_file():
                 shutil.copyfile(self.sessions_path, copy.sessions_path)
             copy.header_path.parent.mkdir()
-            copy.header_path.write_text(json.dumps(header) + "\n")
+            if checkpoint:
+                shutil.copyfile(self.checkpoint_path, copy.checkpoint_path)
+            else:
+                copy.header_path.write_text(json.dumps(header) + "\n")
             if target.exists():
                 shutil.rmtree(target)
             staging.rename(target)

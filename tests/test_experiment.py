@@ -247,6 +247,41 @@ def test_an_export_keeps_results_not_checkpoints_and_continues_the_grid_elsewher
     assert "is the experiment directory itself" in one_error_line(capsys.readouterr().err)
 
 
+def test_a_carried_export_continues_partial_runs_and_stages_without_retraining(
+    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    shutil.rmtree(out / STAGE_RUN)
+    longer = tmp_path / "longer.yaml"
+    longer.write_text(yaml.safe_dump({**yaml.safe_load(SMOKE.read_text()), "steps": 2000}))
+    moved = tmp_path / "moved"
+    assert main(["experiment", str(longer), "--out", str(out), "--report-only",
+                 "--export", str(moved), "--carry"]) == 0
+    for run in (CMAT_RUN, MAT_RUN):
+        assert ((moved / run / "checkpoints" / "latest.ckpt").read_bytes()
+                == (out / run / "checkpoints" / "latest.ckpt").read_bytes())
+    assert "carried 2 runs with their checkpoints" in capsys.readouterr().out
+    planned = experiment(str(longer), "--out", str(moved), "--dry-run")
+    for run in (CMAT_RUN, MAT_RUN):
+        assert f"resume  {run.removeprefix('runs/')}: at 1000 of 2000" in planned.stdout
+
+    committed = tmp_path / "committed"
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--report-only",
+                 "--export", str(committed), "--carry"]) == 0
+    assert (committed / CMAT_RUN / "checkpoints" / "latest.ckpt").is_file()
+    assert not (committed / MAT_RUN / "checkpoints" / "latest.ckpt").exists()
+    elsewhere = Path(shutil.copytree(committed, tmp_path / "elsewhere"))
+    done = experiment(str(SMOKE), "--out", str(elsewhere), "--export", str(committed),
+                      "--carry")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"[start] {CMAT_RUN.removeprefix('runs/')}" not in done.stdout
+    assert checkpoint_steps(elsewhere / STAGE_RUN) == 500
+    assert not list(committed.rglob("*.ckpt")) and "carried 0 runs" in done.stdout
+
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--carry"]) == 2
+    assert "--carry applies to --export only" in one_error_line(capsys.readouterr().err)
+
+
 def test_corrupt_and_partial_run_directories_are_reported_and_redone(
     grid: tuple[Path, bytes, str], tmp_path: Path
 ) -> None:

@@ -20,6 +20,7 @@ from cmat.experiments.execute import (
     experiment_lock,
 )
 from cmat.experiments.plan import (
+    FINISHED,
     NEW,
     REDO,
     RESUME,
@@ -45,13 +46,15 @@ def run_experiment(
     report_only: bool = False,
     only: list[str] | None = None,
     export: Path | None = None,
+    carry: bool = False,
 ) -> Plan:
     """Plan, execute and report the experiment of `spec_path` in `out`; with `report_only`,
     report the complete runs already in `out` and start none (without the directory's lock,
     so it can report a grid another process is still running). `only` (shell patterns on run
     names `ENV/VARIANT/ALGO-sFIRST-LAST`) runs just the matching runs of the grid; the report
     still covers every complete run. `export` copies the results of every complete run, without
-    checkpoints, into that directory and reports there (`export_results`)."""
+    checkpoints, into that directory and reports there (`export_results`); `carry` adds the
+    checkpoints the grid still needs, to continue it from that copy."""
     spec = load_spec(spec_path)
     if parallel is not None and parallel <= 0:
         raise CmatError(f"--parallel must be > 0, got {parallel}")
@@ -63,6 +66,8 @@ def run_experiment(
         export = Path(export).absolute()
         if export == out:
             raise CmatError(f"--export {export} is the experiment directory itself")
+    elif carry:
+        raise CmatError("--carry applies to --export only")
     plan = make_plan(spec, out)
     selected = select(plan, only)
     if not report_only:
@@ -96,7 +101,7 @@ def run_experiment(
         for path in written:
             say(f"wrote {path}")
     if export is not None:
-        export_results(plan, export)
+        export_results(plan, export, carry)
     failed = [run for run in plan.runs if run.outcome not in (None, "ok")]
     if failed:
         raise CmatError(
@@ -127,18 +132,36 @@ def say_selection(selected: list[Run], plan: Plan, only: list[str] | None) -> No
             + ", ".join(run.name for run in selected))
 
 
-def export_results(plan: Plan, target: Path) -> None:
+def export_results(plan: Plan, target: Path, carry: bool = False) -> None:
     """Copy every complete run of `plan` into `target` as results without checkpoints
     (`RunDir.export`), with the spec, then write the report there from every complete run
     `target` holds, so `target` can be committed or shared. Runs `target` holds that `plan`'s
     directory lacks stay. `target` then serves as `--out` for `--report-only`, and a copy of it
     as `--out` to continue the grid on another machine: exported runs count as complete (a
-    fine-tuning stage still to run retrains its base first)."""
-    complete = [run for run in plan.runs if run.complete]
-    for run in complete:
-        RunDir(run.path).export(target / "runs" / run.name)
+    fine-tuning stage still to run retrains its base first).
+
+    With `carry`, the runs the grid still needs go with their checkpoints, so the copy continues
+    them instead of starting over: every partial run (resumed there), and every complete run
+    that a fine-tuning stage not yet complete starts from. Once nothing needs them, the next
+    export replaces those copies with results only."""
+    inspect_all(plan)
+    pending_bases = {run.base.name for run in plan.runs
+                     if run.base is not None and run.status in (NEW, RESUME, REDO)}
+    complete = [run for run in plan.runs if run.status == FINISHED]
+    partial = [run for run in plan.runs if run.status == RESUME] if carry else []
+    carried = []
+    for run in complete + partial:
+        run_dir = RunDir(run.path)
+        keep = carry and (run.status == RESUME or (run.name in pending_bases
+                                                    and run_dir.checkpoint_path.is_file()))
+        run_dir.export(target / "runs" / run.name, checkpoint=keep)
+        if keep:
+            carried.append(run.name)
     shutil.copyfile(plan.spec.path, target / "spec.yaml")
     say(f"exported {len(complete)} complete runs (results without checkpoints) to {target}")
+    if carry:
+        say(f"carried {len(carried)} runs with their checkpoints (partial, or the base of a "
+            f"fine-tuning stage still to run)" + (": " + ", ".join(carried) if carried else ""))
     exported = make_plan(plan.spec, target)
     for path in write_report(exported):
         say(f"wrote {path}")
