@@ -29,6 +29,7 @@ from cmat.experiments.lines import (
     load_suite_aggregates,
     matching_suite_aggregates,
 )
+from cmat.experiments.plan import make_plan, schedule
 from cmat.experiments.runner import run_experiment
 from cmat.experiments.spec import ALGO_LABELS, load_spec
 from cmat.experiments.statistics import aggregate, improvement_probability, iqm
@@ -280,6 +281,23 @@ def test_a_carried_export_continues_partial_runs_and_stages_without_retraining(
 
     assert main(["experiment", str(SMOKE), "--out", str(out), "--carry"]) == 2
     assert "--carry applies to --export only" in one_error_line(capsys.readouterr().err)
+
+
+def test_partial_runs_start_first_and_stages_after_their_base(
+    grid: tuple[Path, bytes, str], tmp_path: Path
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    shutil.rmtree(out / CMAT_RUN)
+    longer = tmp_path / "longer.yaml"
+    longer.write_text(yaml.safe_dump({**yaml.safe_load(SMOKE.read_text()), "steps": 2000}))
+    plan = make_plan(load_spec(longer), out)
+    status = {run.name: run.status for run in plan.runs}
+    cmat, mat, stage = (run.removeprefix("runs/") for run in (CMAT_RUN, MAT_RUN, STAGE_RUN))
+    assert (status[cmat], status[mat], status[stage]) == ("new", "resume", "redo")
+    order = [run.name for run in schedule(plan.runs)]
+    assert order[0] == mat and order.index(cmat) < order.index(stage)
+    assert [name for name in order if name != mat] == [
+        run.name for run in plan.runs if run.name != mat]
 
 
 def test_corrupt_and_partial_run_directories_are_reported_and_redone(

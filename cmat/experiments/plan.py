@@ -142,6 +142,13 @@ def retrain_exported_bases(runs: list[Run]) -> list[Run]:
     return ordered
 
 
+def schedule(runs: list[Run]) -> list[Run]:
+    """The runs to execute in the order to start them: partial runs first (nearest to
+    complete, and a grid continued from a carried export should finish what it carried before
+    starting anything new), then the others in grid order, every stage still after its base."""
+    return sorted(runs, key=lambda run: run.status != RESUME)
+
+
 def order_variants(variants: tuple[Variant, ...]) -> list[Variant]:
     """Variants with every fine-tuning stage after the variant it starts from."""
     ordered: list[Variant] = []

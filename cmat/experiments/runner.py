@@ -31,6 +31,7 @@ from cmat.experiments.plan import (
     print_plan,
     retrain_exported_bases,
     say,
+    schedule,
 )
 from cmat.experiments.report import write_report
 from cmat.experiments.spec import load_spec
@@ -90,7 +91,7 @@ def run_experiment(
         for run in selected:
             if run.status == REDO and not report_only:
                 discard(run, out)
-        jobs = [run for run in selected if run.status in (NEW, RESUME, REDO)]
+        jobs = schedule([run for run in selected if run.status in (NEW, RESUME, REDO)])
         if jobs and not report_only:
             cache = out / "jax_cache"
             executor = (RayExecutor(ray_address, cache) if ray_address is not None
