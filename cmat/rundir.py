@@ -231,9 +231,10 @@ class RunDir:
         try:
             copy = RunDir(staging)
             shutil.copyfile(self.config_path, copy.config_path)
-            shutil.copyfile(self.metrics_path, copy.metrics_path)
-            if self.sessions_path.is_file():
-                shutil.copyfile(self.sessions_path, copy.sessions_path)
+            for source, destination in ((self.metrics_path, copy.metrics_path),
+                                        (self.sessions_path, copy.sessions_path)):
+                if source.is_file():
+                    shutil.copyfile(source, destination)
             copy.header_path.parent.mkdir()
             if checkpoint:
                 shutil.copyfile(self.checkpoint_path, copy.checkpoint_path)

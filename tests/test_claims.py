@@ -140,7 +140,10 @@ def test_claims_without_runs_have_no_data_and_partial_grids_say_how_many_tasks(
     assert claims["c"]["verdict"] == NO_DATA and coverage(claims["c"]) == ""
     assert claims["CMAT"]["verdict"] == SUPPORTED
     assert coverage(claims["CMAT"]) == " (on 1 of 2 tasks)"
-    assert "CMAT-ft" not in claims
+    assert claims["CMAT-ft"]["verdict"] == NO_DATA and not claims["CMAT-ft"]["comparisons"]
+    nothing = judge_claims(summary({}), spec)
+    assert [claim["key"] for claim in nothing] == ["a", "b", "c", "d", "e"]
+    assert {claim["verdict"] for claim in nothing} == {NO_DATA}
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -198,6 +198,12 @@ def judge_claims(summary: dict[str, Any], spec: ExperimentSpec) -> list[dict[str
         others = [o for o in lines if o != label and main(o) and not stage(o)]
         claims.append(Claim("b", f"{CLAIMS['b']} ({label})", pairs(label, others, benchmark),
                             covered({lines[label]["variant"]}, False)))
+    seen_stages = {lines[label]["variant"] for label in stages}
+    for variant in spec.variants:
+        if variant.finetune is not None and variant.name not in seen_stages:
+            for algo in variant.algos:
+                claims.append(Claim("b", f"{CLAIMS['b']} ({variant.line_label(algo)})", [],
+                                    covered({variant.name}, False)))
     if ref_line is not None and reference is not None:
         def same_m(label: str) -> bool:
             shared = iterations[label].keys() & iterations[reference].keys()
@@ -215,6 +221,9 @@ def judge_claims(summary: dict[str, Any], spec: ExperimentSpec) -> list[dict[str
         mat = [label for label, line in lines.items()
                if line["algo"] == "mat" and line["variant"] == "default"]
         claims.append(Claim("e", CLAIMS["e"], pairs(reference, mat, game), covered(set(), True)))
+    claims += [Claim(key, statement) for key, statement in CLAIMS.items()
+               if not any(claim.key == key for claim in claims)]
+    claims.sort(key=lambda claim: claim.key)
     for claim in claims:
         claim.verdict = verdict(claim.comparisons, robust_default=claim.key == "d")
     return [asdict(claim) for claim in claims]

@@ -142,14 +142,16 @@ def export_results(plan: Plan, target: Path, carry: bool = False) -> None:
     fine-tuning stage still to run retrains its base first).
 
     With `carry`, the runs the grid still needs go with their checkpoints, so the copy continues
-    them instead of starting over: every partial run (resumed there), and every complete run
+    them instead of starting over: every partial run past its first chunk (resumed there; one
+    that has only its initial checkpoint starts over), and every complete run
     that a fine-tuning stage not yet complete starts from. Once nothing needs them, the next
     export replaces those copies with results only."""
     inspect_all(plan)
     pending_bases = {run.base.name for run in plan.runs
                      if run.base is not None and run.status in (NEW, RESUME, REDO)}
     complete = [run for run in plan.runs if run.status == FINISHED]
-    partial = [run for run in plan.runs if run.status == RESUME] if carry else []
+    partial = [run for run in plan.runs
+               if carry and run.status == RESUME and RunDir(run.path).checkpoint_steps()[0] > 0]
     carried = []
     for run in complete + partial:
         run_dir = RunDir(run.path)
