@@ -5,6 +5,10 @@ Many tests build the same small programs (a CMAT on ``matrix:fig1``, a SMAX 3m u
 separate closures; XLA's persistent cache keys on the compiled program, so the second build
 is a file read. The directory is fresh for every session and removed at its end, so a test
 never depends on what an earlier session compiled.
+
+The workers' OpenBLAS (LAPACK's QR in the orthogonal initialisers) runs on one thread, as the
+trainers' initialisation does (`cmat.runners.base.single_threaded_lapack`): with two workers
+on two cores, its threads otherwise spin against XLA's for up to a second per initialisation.
 """
 
 import os
@@ -19,6 +23,7 @@ CACHE_KEY = pytest.StashKey[str]()
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     if hasattr(config, "workerinput") or CACHE_VARIABLE in os.environ:
         return
     directory = tempfile.mkdtemp(prefix="cmat-tests-jax-cache-")

@@ -16,6 +16,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
+import threadpoolctl
 
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
@@ -137,10 +138,28 @@ def restore_state(
     return state
 
 
+def single_threaded_lapack() -> threadpoolctl.threadpool_limits:
+    """A context in which the BLAS/LAPACK libraries of this process (scipy's and numpy's
+    OpenBLAS) use one thread, for running parameter initialisation.
+
+    Orthogonal initialisers (MAT's reference initialisation) call LAPACK's QR from XLA:CPU's
+    threads. Where another process or test worker also keeps the cores busy, OpenBLAS's own
+    threads spin against XLA's: one CMAT initialisation then took 1.07 s instead of 0.008 s
+    with one LAPACK thread (`benchmarks/init_time.py`). At these matrix sizes one thread loses
+    nothing on an idle machine."""
+    return threadpoolctl.threadpool_limits(limits=1, user_api="blas")
+
+
 def stack_seeds(states: list[TrainerState]) -> TrainerState:
-    """One state with a leading seed axis from each seed's state."""
-    stacked: TrainerState = jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
+    """One state with a leading seed axis from each seed's state, stacked in one program (one
+    dispatch instead of one per leaf)."""
+    stacked: TrainerState = stack_trees(states)
     return stacked
+
+
+@jax.jit
+def stack_trees(trees: list[Any]) -> Any:
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)
 
 
 def seed_keys(config: TrainConfig, offset: int = 0) -> jax.Array:

@@ -36,6 +36,7 @@ from cmat.runners.base import (
     TrainerState,
     restore_state,
     seed_keys,
+    single_threaded_lapack,
     stack_seeds,
     state_to_bytes,
 )
@@ -176,8 +177,9 @@ class HostTrainer:
         """Fresh state for every seed, initialised seed by seed (see `trainer.make_train`)."""
         timestep = self._start_episodes()
         obs, mask = self._per_seed(timestep.obs), self._per_seed(timestep.action_mask)
-        learners = [self._init(key, obs[k], mask[k])
-                    for k, key in enumerate(seed_keys(self.config))]
+        with single_threaded_lapack():
+            learners = [self._init(key, obs[k], mask[k])
+                        for k, key in enumerate(seed_keys(self.config))]
         return stack_seeds([TrainerState(learner, None) for learner in learners])
 
     def collect(self, learner: LearnerState) -> tuple[LearnerState, Rollout]:

@@ -10,6 +10,7 @@ PureJaxRL style.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -25,6 +26,7 @@ from cmat.runners.base import (
     TrainerState,
     restore_state,
     seed_keys,
+    single_threaded_lapack,
     stack_seeds,
     state_to_bytes,
 )
@@ -81,14 +83,16 @@ def run_updates(
 ) -> tuple[TrainerState, dict[str, jax.Array]]:
     """`updates` (≤ `max_updates`, traced) updates in one scan of `max_updates` steps: the
     steps past `updates` leave the state as it is, so one compiled program also runs a run's
-    shorter last chunk. Episode statistics are pooled over the updates done."""
+    shorter last chunk. Episode statistics are pooled over the updates done. The update is
+    one jitted function, so the shape query of the skipped branch and the taken branch share
+    one trace of it."""
+
+    update = jax.jit(functools.partial(update_step, setup))
 
     def step(state: TrainerState, index: jax.Array) -> tuple[TrainerState, dict[str, jax.Array]]:
-        shapes = jax.eval_shape(lambda s: update_step(setup, s)[1], state)
+        shapes = jax.eval_shape(update, state)[1]
         skipped = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
-        state, metrics = jax.lax.cond(
-            index < updates, lambda s: update_step(setup, s), lambda s: (s, skipped), state
-        )
+        state, metrics = jax.lax.cond(index < updates, update, lambda s: (s, skipped), state)
         return state, {**metrics, "performed": index < updates}
 
     state, per_update = jax.lax.scan(step, state, jnp.arange(max_updates))
@@ -146,7 +150,8 @@ class JaxTrainer:
     def init(self) -> TrainerState:
         """Fresh state for every seed, initialised seed by seed (see `make_train`), placed on
         the local devices (cmat.runners.devices)."""
-        state = stack_seeds([self._init(key) for key in seed_keys(self.config)])
+        with single_threaded_lapack():
+            state = stack_seeds([self._init(key) for key in seed_keys(self.config)])
         return place(state, self.devices, self.sharded_axis)
 
     def train_chunk(
