@@ -56,7 +56,9 @@ def minibatch_sgd(
         }
         return (optax.apply_updates(params, updates), opt_state), metrics
 
-    def epoch(carry: tuple[Params, Any], key: jax.Array) -> tuple[tuple[Params, Any], Metrics]:
+    def epoch(
+        carry: tuple[Params, Any], key: jax.Array, batch: Batch
+    ) -> tuple[tuple[Params, Any], Metrics]:
         passed = batch
         if epoch_batch is not None:
             key, batch_key = jax.random.split(key)
@@ -73,19 +75,24 @@ def minibatch_sgd(
 
     keys = jax.random.split(rng, ppo.epochs)
     if ppo.target_kl is None:
-        (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
+        (params, opt_state), metrics = jax.lax.scan(
+            lambda carry, key: epoch(carry, key, batch), (params, opt_state), keys
+        )
         return params, opt_state, jax.tree.map(jnp.mean, metrics)
     target_kl = ppo.target_kl
+    traced_epoch = jax.jit(epoch)
 
     def early_stopping_epoch(
         carry: tuple[Params, Any, jax.Array], key: jax.Array
     ) -> tuple[tuple[Params, Any, jax.Array], Metrics]:
-        """An epoch unless an earlier one passed `ppo.target_kl` (then the state is kept)."""
+        """An epoch unless an earlier one passed `ppo.target_kl` (then the state is kept); the
+        skipped branch's shapes and the epoch share one trace of the jitted epoch."""
         params, opt_state, stopped = carry
-        shapes = jax.eval_shape(lambda c: epoch(c, key)[1], (params, opt_state))
+        shapes = jax.eval_shape(traced_epoch, (params, opt_state), key, batch)[1]
         skipped = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
         (params, opt_state), metrics = jax.lax.cond(
-            stopped, lambda c: (c, skipped), lambda c: epoch(c, key), (params, opt_state)
+            stopped, lambda c: (c, skipped), lambda c: traced_epoch(c, key, batch),
+            (params, opt_state),
         )
         ran = ~stopped
         stopped = stopped | (jnp.mean(metrics["approx_kl"]) > target_kl)
