@@ -22,6 +22,8 @@ from cmat.resolve import load_config
 DISCRETE = EnvSpec("test", 4, 5, 3, True, 10, False)
 CONTINUOUS = EnvSpec("test", 4, 5, 3, False, 10, False)
 
+pytestmark = pytest.mark.quick_compiles
+
 
 @pytest.mark.parametrize("algo, spec, network", [
     ("cmat", CONTINUOUS, {"consensus_policy": "categorical"}),
@@ -53,6 +55,7 @@ def test_chunked_minibatch_gives_the_same_loss_and_gradient(algo, spec, network)
     np.testing.assert_allclose(flat_chunked, flat_whole, rtol=1e-4, atol=1e-5 * scale)
 
 
+@pytest.mark.optimised  # XLA's buffer assignment after its optimisations is what is measured
 def test_chunks_shrink_the_compiled_gradients_working_memory() -> None:
     algorithm = build_algorithm("cmat", NetworkConfig(n_embd=32, consensus_iterations=1), DISCRETE)
     params, batch = batch_for(algorithm)

@@ -26,6 +26,8 @@ from cmat.envs.smax_healer import (
     random_legal_actions,
 )
 
+pytestmark = pytest.mark.quick_compiles
+
 # MMM unit indices: allies 0-1 marauders, 2-8 marines, 9 Medivac; enemies 10-19 likewise.
 MEDIC, MARAUDER, MARINE, OTHER_MARINE = 9, 0, 2, 3
 ENEMY_MARINE, ENEMY_MEDIC = 12, 19

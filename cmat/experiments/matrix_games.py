@@ -15,7 +15,7 @@ from cmat.runners.trainer import JaxTrainer
 def greedy_joint_actions(trainer: JaxTrainer, params: object) -> np.ndarray:
     """[seeds, agents] greedy joint action of every seed (matrix games have one state)."""
     _, timestep = trainer.setup.collector.env.reset(jax.random.PRNGKey(0))
-    greedy = jax.vmap(trainer.learner_setup.algorithm.greedy, in_axes=(0, None, None))
+    greedy = jax.jit(jax.vmap(trainer.learner_setup.algorithm.greedy, in_axes=(0, None, None)))
     return np.asarray(greedy(params, timestep.obs, timestep.action_mask))
 
 
