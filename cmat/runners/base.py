@@ -144,9 +144,9 @@ def single_threaded_lapack() -> threadpoolctl.threadpool_limits:
 
     Orthogonal initialisers (MAT's reference initialisation) call LAPACK's QR from XLA:CPU's
     threads. Where another process or test worker also keeps the cores busy, OpenBLAS's own
-    threads spin against XLA's: one CMAT initialisation then took 1.07 s instead of 0.008 s
-    with one LAPACK thread (`benchmarks/init_time.py`). At these matrix sizes one thread loses
-    nothing on an idle machine."""
+    threads spin against XLA's: one CMAT initialisation then took 1.09 s instead of 0.012 s
+    with one LAPACK thread (`benchmarks/init_time.py`, results/init_time.txt), and on an idle
+    machine one thread was faster as well (11 against 31 ms)."""
     return threadpoolctl.threadpool_limits(limits=1, user_api="blas")
 
 
