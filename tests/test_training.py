@@ -160,3 +160,23 @@ def test_smax_3m_improves_on_its_starting_return() -> None:
         "env=smax:3m", "total_steps=32000", "log_interval=10", "eval_episodes=64",
     ])
     assert greedy_return_gain(config) >= 0.5
+
+
+def test_initialisation_runs_lapack_on_one_thread() -> None:
+    """The QR of the orthogonal initialisers runs in scipy's OpenBLAS: inside the trainers'
+    initialisation context every BLAS/LAPACK pool of the process has one thread, and after it
+    the pools have their earlier sizes again."""
+    import threadpoolctl
+
+    from cmat.runners.base import single_threaded_lapack
+
+    jax.block_until_ready(jnp.linalg.qr(jnp.eye(4)))
+    before = [pool["num_threads"] for pool in threadpoolctl.threadpool_info()
+              if pool["user_api"] == "blas"]
+    assert before
+    with single_threaded_lapack():
+        inside = [pool["num_threads"] for pool in threadpoolctl.threadpool_info()
+                  if pool["user_api"] == "blas"]
+    assert inside == [1] * len(before)
+    assert [pool["num_threads"] for pool in threadpoolctl.threadpool_info()
+            if pool["user_api"] == "blas"] == before
