@@ -165,18 +165,18 @@ def test_smax_3m_improves_on_its_starting_return() -> None:
 def test_initialisation_runs_lapack_on_one_thread() -> None:
     """The QR of the orthogonal initialisers runs in scipy's OpenBLAS: inside the trainers'
     initialisation context every BLAS/LAPACK pool of the process has one thread, and after it
-    the pools have their earlier sizes again."""
+    the pools have their earlier sizes again (two threads here, whatever the suite's default)."""
     import threadpoolctl
 
     from cmat.runners.base import single_threaded_lapack
 
+    def blas_threads() -> list[int]:
+        return [pool["num_threads"] for pool in threadpoolctl.threadpool_info()
+                if pool["user_api"] == "blas"]
+
     jax.block_until_ready(jnp.linalg.qr(jnp.eye(4)))
-    before = [pool["num_threads"] for pool in threadpoolctl.threadpool_info()
-              if pool["user_api"] == "blas"]
-    assert before
-    with single_threaded_lapack():
-        inside = [pool["num_threads"] for pool in threadpoolctl.threadpool_info()
-                  if pool["user_api"] == "blas"]
-    assert inside == [1] * len(before)
-    assert [pool["num_threads"] for pool in threadpoolctl.threadpool_info()
-            if pool["user_api"] == "blas"] == before
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        assert blas_threads() and set(blas_threads()) == {2}
+        with single_threaded_lapack():
+            assert set(blas_threads()) == {1}
+        assert set(blas_threads()) == {2}
