@@ -58,7 +58,7 @@ def test_network_fields_an_algorithm_does_not_declare_leave_it_unchanged(algo: s
 
     def built(network: NetworkConfig) -> tuple[Any, Any]:
         algorithm = build_algorithm(algo, network, env.spec)
-        params = jax.jit(algorithm.init)(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
+        params = algorithm.init(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
         return params, algorithm.greedy(params, timestep.obs, timestep.action_mask)
 
     declared = algorithm_class(algo).network_fields

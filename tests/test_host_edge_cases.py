@@ -235,7 +235,7 @@ def test_infinite_bounds_are_sent_unmapped() -> None:
     np.testing.assert_allclose(sent["right"], [-7.0, 0.0])  # as sampled, clipped to [0, inf)
 
 
-@pytest.mark.optimised
+@pytest.mark.slow
 def test_a_policy_learns_to_hit_targets_inside_boxes_far_from_zero() -> None:
     """Measured: the greedy return goes from -1.24 (about the box midpoints) to -0.002 in 40
     updates of 64 one-step episodes (0 is optimal); actions stuck at a bound would score

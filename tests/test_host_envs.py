@@ -423,7 +423,8 @@ def test_halfcheetah_6x1_through_the_cli(tmp_path: Path, capsys: pytest.CaptureF
     out = tmp_path / "cheetah"
     assert main(["train", "--env", "mamujoco:HalfCheetah-6x1", "--steps", "400", "--out",
                  str(out), "--set", "num_envs=4", "rollout_length=50", "network.n_embd=16",
-                 "ppo.epochs=1", "eval_episodes=1", "log_interval=2"]) == 0
+                 "ppo.epochs=1", "eval_episodes=1", "log_interval=2",
+                 "env_kwargs.max_episode_steps=100"]) == 0
     with (out / "metrics.csv").open() as file:
         rows = list(csv.DictReader(file))
     assert [(r["kind"], r["env_steps"]) for r in rows] == [("train", "400"), ("eval", "400")]
