@@ -4,7 +4,7 @@ milliseconds per gradient and XLA's temporary buffer size.
     python benchmarks/network_gradient.py [--agents 25 50 100] [--algos cmat mat] [--batch 200]
 
 The gradient is what the PPO update repeats (epochs × minibatches), and CMAT's decoder is the
-part that grows with m = n: it runs m iterations, each attending to the consensus vectors
+part that grows with m = n: it unrolls m iterations, each attending to the consensus vectors
 before it. For each team size n and network: a jitted gradient of a scalar of the training
 forward pass (CMAT: every agent's log-softmax and the value; MAT: the same from its
 teacher-forced pass) on `--batch` teams of random observations (`--obs-dim` features per agent,

@@ -96,10 +96,8 @@ class ConsensusDecoder(nn.Module):
     """Iterates the consensus: e_k = Decoder([e0..e(k-1)] + pos, Ô) at the last position.
 
     Causal attention makes earlier positions independent of later ones, so a key/value cache is
-    exact. The m iterations are one step scanned m times: a fixed-length cache of m positions,
-    each step writing its own and attending to those before it through a mask, so the program
-    (and its compile time) does not grow with m. Gradients flow through all iterations (the
-    consensus is deterministic, paper eq. ratio).
+    exact; the m iterations are unrolled (m is static and small), and gradients flow through all
+    of them (the consensus is deterministic, paper eq. ratio).
     """
 
     n_embd: int
@@ -108,43 +106,28 @@ class ConsensusDecoder(nn.Module):
     iterations: int
     gain: float = SMALL_GAIN
 
-    def setup(self) -> None:
-        self.blocks = [
-            DecoderBlock(self.n_embd, self.n_head, self.gain, name=f"DecoderBlock_{layer}")
-            for layer in range(self.n_block)
-        ]
-        if self.iterations:
-            self.positions = self.param(
-                "positions", nn.initializers.normal(0.02), (self.iterations, self.n_embd)
-            )
-
+    @nn.compact
     def __call__(self, e0: jax.Array, encoded: jax.Array) -> jax.Array:
         """e0 [..., d], encoded [..., n, d] -> E = [e0..em] as [..., m+1, d]."""
         if self.iterations == 0:
             return e0[..., None, :]
-        memories = [block.encode_memory(encoded) for block in self.blocks]
-        head_dim = self.n_embd // self.n_head
-        empty = jnp.zeros((*e0.shape[:-1], self.n_head, self.iterations, head_dim), e0.dtype)
-        caches: list[KeyValues] = [(empty, empty) for _ in self.blocks]
-
-        def iterate(
-            decoder: ConsensusDecoder, carry: tuple[jax.Array, list[KeyValues]],
-            position: jax.Array,
-        ) -> tuple[tuple[jax.Array, list[KeyValues]], jax.Array]:
-            previous, caches = carry
-            x = (previous + decoder.positions[position])[..., None, :]
-            written = []
-            for block, cache, memory in zip(decoder.blocks, caches, memories, strict=True):
-                x, cache = block.step(x, cache, memory, position)
-                written.append(cache)
-            return (x[..., 0, :], written), x[..., 0, :]
-
-        scan = nn.scan(
-            iterate, variable_broadcast="params", split_rngs={"params": False},
-            length=self.iterations,
+        blocks = [
+            DecoderBlock(self.n_embd, self.n_head, self.gain) for _ in range(self.n_block)
+        ]
+        positions = self.param(
+            "positions", nn.initializers.normal(0.02), (self.iterations, self.n_embd)
         )
-        _, iterated = scan(self, (e0, caches), jnp.arange(self.iterations))
-        return jnp.concatenate([e0[..., None, :], jnp.moveaxis(iterated, 0, -2)], axis=-2)
+        memories = [block.encode_memory(encoded) for block in blocks]
+        caches: list[KeyValues | None] = [None] * self.n_block
+        sequence = [e0]
+        for k in range(self.iterations):
+            x = (sequence[-1] + positions[k])[..., None, :]
+            for layer, block in enumerate(blocks):
+                x, caches[layer] = block.step(
+                    x, caches[layer], memories[layer], k, self.iterations
+                )
+            sequence.append(x[..., 0, :])
+        return jnp.stack(sequence, axis=-2)
 
 
 class CMATNetwork(nn.Module):

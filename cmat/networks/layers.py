@@ -32,15 +32,13 @@ KeyValues = tuple[jax.Array, jax.Array]
 """Keys and values of attended positions, each [..., heads, L, d/heads] (head-major)."""
 
 
-def extend(
-    cache: KeyValues | None, new: KeyValues, position: int | jax.Array, length: int
-) -> KeyValues:
+def extend(cache: KeyValues | None, new: KeyValues, position: int, length: int) -> KeyValues:
     """A key/value cache of `length` positions (zeros where None) with the one position of
-    `new` written at `position`; attention reads positions 0..position of it (`filled` where
-    `position` is static, a `visible` mask where it is traced).
+    `new` written at `position` (static); attention reads positions 0..position of it
+    (`filled`).
 
     One buffer per sequence, written in place, rather than a concatenation per position: the
-    decoder unrolled over many positions compiles and runs faster (README, Speed)."""
+    unrolled CMAT decoder's gradient compiles and runs faster at large m (README, Speed)."""
     if cache is None:
         shape = (*new[0].shape[:-2], length, new[0].shape[-1])
         cache = (jnp.zeros(shape, new[0].dtype), jnp.zeros(shape, new[1].dtype))
@@ -85,18 +83,15 @@ class MultiHeadAttention(nn.Module):
         return self.split_heads(self.key(memory)), self.split_heads(self.value(memory))
 
     def attend(
-        self, x: jax.Array, keys: jax.Array, values: jax.Array, causal: bool = False,
-        visible: jax.Array | None = None,
+        self, x: jax.Array, keys: jax.Array, values: jax.Array, causal: bool = False
     ) -> jax.Array:
-        """Query positions of `x` attend to the given keys: all of them, with `causal` position
-        k to keys 0..k only, with `visible` ([L] bool over the keys) to those it marks."""
+        """Query positions of `x` attend to the given keys: all of them, or with `causal`,
+        position k to keys 0..k only."""
         queries = self.split_heads(self.query(x)) / np.sqrt(self.n_embd // self.n_head)
         logits = jnp.einsum("...qd,...kd->...qk", queries, keys)
         if causal:
             mask = jnp.tril(jnp.ones((x.shape[-2], keys.shape[-2]), dtype=bool))
             logits = jnp.where(mask, logits, jnp.finfo(logits.dtype).min)
-        if visible is not None:
-            logits = jnp.where(visible, logits, jnp.finfo(logits.dtype).min)
         heads = jnp.einsum("...qk,...kd->...qd", jax.nn.softmax(logits, axis=-1), values)
         return self.out(jnp.moveaxis(heads, -3, -2).reshape(*x.shape[:-1], self.n_embd))
 
@@ -191,17 +186,15 @@ class DecoderBlock(nn.Module):
     def step(
         self,
         token: jax.Array,
-        cache: KeyValues,
+        cache: KeyValues | None,
         encoded: KeyValues,
-        position: jax.Array,
+        position: int,
+        length: int,
     ) -> tuple[jax.Array, KeyValues]:
-        """token [..., 1, d] at `position` (traced: the step can be the body of a scan) of the
-        sequence whose keys/values `cache` holds ([..., heads, length, d/heads], `extend`):
-        it is written there and attends to positions 0..position of it."""
-        cache = extend(cache, self.self_attention.project_memory(token), position,
-                       cache[0].shape[-2])
-        visible = jnp.arange(cache[0].shape[-2]) <= position
-        x = self.norms[0](token + self.self_attention.attend(token, *cache, visible=visible))
+        """token [..., 1, d] at `position` of a sequence of `length`; cache: keys/values of
+        the earlier tokens (`extend`), None at position 0."""
+        cache = extend(cache, self.self_attention.project_memory(token), position, length)
+        x = self.norms[0](token + self.self_attention.attend(token, *filled(cache, position)))
         x = self.norms[1](x + self.cross_attention.attend(x, *encoded))
         x = self.norms[2](x + self.feed_forward(x))
         return x, cache
