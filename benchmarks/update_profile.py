@@ -3,14 +3,18 @@
     python benchmarks/update_profile.py                          # CMAT, SMAX 6h_vs_8z
     python benchmarks/update_profile.py --algo mat --top 25
     python benchmarks/update_profile.py --set network.compute_dtype=bfloat16
+    python benchmarks/update_profile.py --env smax:50m --set num_envs=8 rollout_length=25 \
+        --dump DIR
 
 Collects one rollout with the algorithm's own config for `--env`, compiles `learn` (target-critic
 GAE, every epoch and minibatch of the algorithm's update, the target critic's soft update) on that
 fixed rollout, runs it once to warm up, then `--repeats` times under `jax.profiler.trace`. The
 trace's per-operation events (XLA's CPU runtime records one per executed thunk) are matched to
 the optimised HLO's instructions and summed: by kind (plain matmuls, batched matmuls, fusions
-that contain either, elementwise fusions, other opcodes), elementwise fusions by output shape,
-and the top `--top` operations. Shares are of the operations' busy time; its ratio to the wall
+that contain either, elementwise fusions, other opcodes), by network part (forward or backward
+pass of a network module, from the instructions' metadata), elementwise fusions by output shape,
+and the top `--top` operations; `--dump DIR` also writes the optimised HLO and every operation's
+time. Shares are of the operations' busy time; its ratio to the wall
 time is the average number of threads at work. Also printed: XLA's FLOP count of the update and
 its achieved FLOP/s.
 """
@@ -28,8 +32,21 @@ from pathlib import Path
 from typing import Any
 
 
-def hlo_operations(hlo: str) -> dict[str, tuple[str, str]]:
-    """Each instruction of the optimised HLO text: name -> (kind, output shape). Kinds: a dot
+def network_part(op_name: str) -> str:
+    """The pass and network part an instruction's metadata names ("backward decoder/
+    DecoderBlock_0.step"): the first two module names after the network's class (a
+    capitalised Flax module name in parentheses) in its
+    `op_name`; "other" outside the network (losses, GAE, optimizer, unnamed fusions)."""
+    match = re.search(r"\([A-Z]\w*(?:\.\w+)?\)+((?:/[\w.]+){1,2})", op_name)
+    if not match:
+        return "other"
+    direction = "backward" if "transpose(" in op_name else "forward"
+    return f"{direction} {match.group(1).lstrip('/')}"
+
+
+def hlo_operations(hlo: str) -> dict[str, tuple[str, str, str]]:
+    """Each instruction of the optimised HLO text: name -> (kind, output shape, network part
+    from `network_part`). Kinds: a dot
     with batch dimensions ("batched dot"), a plain one ("matmul"), a fusion that contains either
     ("fused batched dot", "fused matmul"), any other fusion ("elementwise fusion"), or the
     instruction's opcode."""
@@ -51,6 +68,8 @@ def hlo_operations(hlo: str) -> dict[str, tuple[str, str]]:
             continue
         name, shape, opcode = match.groups()
         shape = re.sub(r"\{.*", "", shape)
+        op_name = re.search(r'op_name="([^"]*)"', line)
+        part = network_part(op_name.group(1)) if op_name else "other"
         if opcode == "dot":
             kind = "batched dot" if "lhs_batch_dims" in line else "matmul"
         elif opcode == "fusion":
@@ -60,7 +79,7 @@ def hlo_operations(hlo: str) -> dict[str, tuple[str, str]]:
                     if " dot(" in body else "elementwise fusion")
         else:
             kind = opcode
-        operations[name] = (kind, shape)
+        operations[name] = (kind, shape, part)
     return operations
 
 
@@ -83,6 +102,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--top", type=int, default=20)
     parser.add_argument("--set", nargs="*", default=[], help="config overrides")
+    parser.add_argument("--dump", type=Path, default=None,
+                        help="write the optimised HLO (update.hlo) and every operation's seconds "
+                             "per update (operations.json) into this folder")
     args = parser.parse_args()
 
     import jax
@@ -119,24 +141,36 @@ def main() -> None:
             totals[event["name"]] += event["dur"] / 1e6 / args.repeats
             counts[event["name"]] += 1
     measured = sum(totals.values())
+    if args.dump is not None:
+        args.dump.mkdir(parents=True, exist_ok=True)
+        (args.dump / "update.hlo").write_text(compiled.as_text() or "")
+        (args.dump / "operations.json").write_text(json.dumps(
+            {name: {"kind": operations[name][0], "shape": operations[name][1],
+                    "part": operations[name][2],
+                    "seconds": seconds, "calls": counts[name] // args.repeats}
+             for name, seconds in totals.most_common()}, indent=1))
     print(f"{args.algo} on {args.env} ({' '.join(args.set) or 'its defaults'}): one update "
           f"{wall:.3f} s ({config.steps_per_update / wall:.0f} env steps/s for the update "
           f"alone); {flops / 1e9:.2f} GFLOP, {flops / wall / 1e9:.1f} GFLOP/s; operations "
           f"busy {measured:.3f} s per update ({measured / wall:.2f} threads on average)")
     kinds: collections.Counter[str] = collections.Counter()
+    parts: collections.Counter[str] = collections.Counter()
     elementwise: collections.Counter[str] = collections.Counter()
     for name, seconds in totals.items():
-        kind, shape = operations[name]
+        kind, shape, part = operations[name]
         kinds[kind] += seconds
+        parts[part] += seconds
         if kind == "elementwise fusion":
             elementwise[shape] += seconds
     print("by kind: " + ", ".join(f"{kind} {seconds / measured:.0%}"
                                   for kind, seconds in kinds.most_common()))
+    print("by network part: " + ", ".join(f"{part} {seconds / measured:.1%}"
+                                          for part, seconds in parts.most_common(12)))
     print("elementwise fusions by output shape: " + ", ".join(
         f"{shape} {seconds / measured:.1%}" for shape, seconds in elementwise.most_common(8)))
     print(f"{'share':>6} {'s/update':>9} {'calls':>6}  operation")
     for name, seconds in totals.most_common(args.top):
-        kind, shape = operations[name]
+        kind, shape, _ = operations[name]
         print(f"{seconds / measured:>6.1%} {seconds:>9.4f} {counts[name] // args.repeats:>6}  "
               f"{name} ({kind}, {shape})")
 
