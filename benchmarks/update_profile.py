@@ -14,9 +14,8 @@ the optimised HLO's instructions and summed: by kind (plain matmuls, batched mat
 that contain either, elementwise fusions, other opcodes), by network part (forward or backward
 pass of a network module, from the instructions' metadata), elementwise fusions by output shape,
 and the top `--top` operations; `--dump DIR` also writes the optimised HLO and every operation's
-time. Shares are of the operations' busy time; its ratio to the wall
-time is the average number of threads at work. Also printed: XLA's FLOP count of the update and
-its achieved FLOP/s.
+time. Shares are of the operations' busy time; its ratio to the wall time is the average number
+of threads at work. Also printed: XLA's FLOP count of the update and its achieved FLOP/s.
 """
 
 from __future__ import annotations
@@ -33,10 +32,10 @@ from typing import Any
 
 
 def network_part(op_name: str) -> str:
-    """The pass and network part an instruction's metadata names ("backward decoder/
-    DecoderBlock_0.step"): the first two module names after the network's class (a
-    capitalised Flax module name in parentheses) in its
-    `op_name`; "other" outside the network (losses, GAE, optimizer, unnamed fusions)."""
+    """The pass and network part an instruction's `op_name` metadata names, such as "backward
+    decoder/DecoderBlock_0.step": the first two module names after the network's class (a
+    capitalised Flax module name in parentheses); "other" outside the network (losses, GAE,
+    optimizer, unnamed fusions)."""
     match = re.search(r"\([A-Z]\w*(?:\.\w+)?\)+((?:/[\w.]+){1,2})", op_name)
     if not match:
         return "other"
@@ -46,10 +45,9 @@ def network_part(op_name: str) -> str:
 
 def hlo_operations(hlo: str) -> dict[str, tuple[str, str, str]]:
     """Each instruction of the optimised HLO text: name -> (kind, output shape, network part
-    from `network_part`). Kinds: a dot
-    with batch dimensions ("batched dot"), a plain one ("matmul"), a fusion that contains either
-    ("fused batched dot", "fused matmul"), any other fusion ("elementwise fusion"), or the
-    instruction's opcode."""
+    from `network_part`). Kinds: a dot with batch dimensions ("batched dot"), a plain one
+    ("matmul"), a fusion that contains either ("fused batched dot", "fused matmul"), any other
+    fusion ("elementwise fusion"), or the instruction's opcode."""
     bodies: dict[str, str] = {}
     current = None
     for line in hlo.splitlines():
