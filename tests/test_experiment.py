@@ -22,6 +22,7 @@ from rliable import metrics as rliable_metrics
 from cmat.algorithms import algorithm_names
 from cmat.cli import main
 from cmat.errors import CmatError
+from cmat.experiments import execute
 from cmat.experiments.claims import CLAIMS, NO_DATA
 from cmat.experiments.lines import (
     Line,
@@ -129,7 +130,8 @@ def test_killed_grid_resumes_without_redoing_finished_runs(grid: tuple[Path, byt
     assert spans[-1] == (500, 1000) and spans[:-1] in ([], [(0, 500)])  # killed before or after
     assert all(s["backend"] == "cpu" and s["seconds"] > 0 for s in sessions)
     summary = json.loads((out / "results.json").read_text())
-    where = f"cpu ({sessions[0]['cpus']} cores)"
+    cpus = sessions[0]["cpus"]
+    where = f"cpu ({cpus} core{'' if cpus == 1 else 's'})"
     assert summary["compute"][where]["runs"] == 3
     assert summary["compute"][where]["hours"] * 3600 == pytest.approx(sum(
         s["seconds"] for run in (CMAT_RUN, MAT_RUN, STAGE_RUN)
@@ -446,14 +448,55 @@ def test_only_runs_the_matching_runs_and_reports_every_complete_one(
     path = tmp_path / "two.yaml"
     path.write_text(yaml.safe_dump({**SPEC, "steps": 400, "algos": ["cmat", "mat"]}))
     out = tmp_path / "out"
-    assert main(["experiment", str(path), "--out", str(out), "--only", "*/mat-*"]) == 0
+    assert main(["experiment", str(path), "--out", str(out), "--only", "*/mat-*",
+                 "--parallel", "2"]) == 0
     assert "--only */mat-*: 1 of 2 runs: matrix_fig1/default/mat-s0" in capsys.readouterr().out
     assert checkpoint_steps(out / "runs/matrix_fig1/default/mat-s0") == 400
+    cores = len(os.sched_getaffinity(0))
+    sessions = RunDir(out / "runs/matrix_fig1/default/mat-s0").sessions()
+    assert [s["cpus"] for s in sessions] == [cores // 2 if cores >= 2 else cores]
     assert not (out / "runs/matrix_fig1/default/cmat-s0").exists()
     assert "| MAT |" in (out / "results.md").read_text()
     assert main(["experiment", str(path), "--out", str(out), "--only", "smax_3m/*"]) == 2
     assert "--only 'smax_3m/*' matches no run of the grid" in one_error_line(
         capsys.readouterr().err)
+
+
+@pytest.mark.parametrize(
+    ("cores", "slots", "groups"),
+    [
+        ({0, 1}, 2, [[0], [1]]),
+        ({0, 1, 2, 3, 4}, 2, [[0, 1, 2], [3, 4]]),
+        ({2, 5, 7, 9}, 3, [[2, 5], [7], [9]]),
+        ({0, 1, 2, 3}, 1, []),
+        ({0, 1}, 3, []),
+    ],
+)
+def test_parallel_runs_get_disjoint_core_groups_covering_the_cores(
+    cores: set[int], slots: int, groups: list[list[int]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: cores)
+    assert execute.core_groups(slots) == groups
+
+
+def test_a_finished_runs_cores_go_to_the_next_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    class Finished:
+        def __init__(self, argv: list[str], env: dict[str, str], **_: object) -> None:
+            self.cores = env.get("CMAT_CORES")
+
+        def poll(self) -> int:
+            return 0
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    monkeypatch.setattr(execute.subprocess, "Popen", Finished)
+    executor = execute.LocalExecutor(tmp_path / "cache", slots=2)
+    first = executor.submit(["train"], tmp_path / "a.log")
+    second = executor.submit(["train"], tmp_path / "b.log")
+    assert (first.cores, second.cores) == ("0,1", "2,3")
+    assert executor.wait([first]) == (first, 0)
+    assert executor.submit(["train"], tmp_path / "c.log").cores == "0,1"
 
 
 @pytest.mark.parametrize("name", ["paper_main.yaml", "paper_ablation.yaml", "smoke.yaml",

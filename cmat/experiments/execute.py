@@ -62,11 +62,32 @@ def command(run: Run) -> list[str]:
 
 
 def default_parallel() -> int:
-    """Runs at once on this machine: one per two cores (XLA uses several threads per run),
+    """Runs at once on this machine: one per two cores (each on its own two, `core_groups`),
     at most one per 4 GiB of available memory."""
     cpus = len(os.sched_getaffinity(0))
     available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2**30
     return max(1, min(cpus // 2, int(available // 4)))
+
+
+def core_groups(slots: int) -> list[list[int]]:
+    """This process's cores split into `slots` disjoint groups of consecutive cores, one per
+    run at once; none (runs share every core) for one slot or fewer cores than slots.
+
+    Runs that share cores each size XLA's thread pool to all of them and contend: on this
+    project's 2-core machine two SMAX 2s3z CMAT runs (3 seeds each) at once trained at 1.07-1.17x
+    the summed steps/s when each was pinned to one core (README, "Experiments: one command for
+    a grid").
+    """
+    cores = sorted(os.sched_getaffinity(0))
+    if slots <= 1 or len(cores) < slots:
+        return []
+    size, extra = divmod(len(cores), slots)
+    groups, start = [], 0
+    for slot in range(slots):
+        end = start + size + (1 if slot < extra else 0)
+        groups.append(cores[start:end])
+        start = end
+    return groups
 
 
 def execute(jobs: list[Run], executor: Any, limit: int, out: Path) -> None:
@@ -141,31 +162,42 @@ def run_cmat(argv: list[str], log_path: str, cache: str) -> int:
         ).returncode
 
 
-def child_env(cache: str, parent: int | None = None) -> dict[str, str]:
+def child_env(
+    cache: str, parent: int | None = None, cores: list[int] | None = None
+) -> dict[str, str]:
     """The environment of a run: unbuffered output; JAX's persistent compilation cache in the
     experiment directory (runs of a grid compile the same programs: a rerun or a resumed run
-    loads them instead of compiling, unless JAX_COMPILATION_CACHE_DIR is set already); and the
-    pid whose death should end the run (see `cmat.__main__`)."""
+    loads them instead of compiling, unless JAX_COMPILATION_CACHE_DIR is set already); the
+    pid whose death should end the run and the cores it may use (see `cmat.__main__`)."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "TF_CPP_MIN_LOG_LEVEL": "2"}
     env.setdefault("JAX_COMPILATION_CACHE_DIR", cache)
     if parent is not None:
         env["CMAT_PARENT_PID"] = str(parent)
+    if cores:
+        env["CMAT_CORES"] = ",".join(map(str, cores))
     return env
 
 
 class LocalExecutor:
     """Runs as subprocesses of this process; each ends when this process dies (a killed
-    experiment leaves no run writing into its directory)."""
+    experiment leaves no run writing into its directory). With `slots` runs at once, each
+    runs on its own group of cores (`core_groups`)."""
 
-    def __init__(self, cache: Path) -> None:
+    def __init__(self, cache: Path, slots: int = 1) -> None:
         self.cache = str(cache)
+        self.free_cores = core_groups(slots)
+        self.cores: dict[subprocess.Popen[bytes], list[int]] = {}
 
     def submit(self, argv: list[str], log: Path) -> subprocess.Popen[bytes]:
+        cores = self.free_cores.pop(0) if self.free_cores else None
         with log.open("a") as file:
-            return subprocess.Popen(
+            process = subprocess.Popen(
                 [sys.executable, "-m", "cmat", *argv], stdout=file, stderr=subprocess.STDOUT,
-                env=child_env(self.cache, parent=os.getpid()),
+                env=child_env(self.cache, parent=os.getpid(), cores=cores),
             )
+        if cores is not None:
+            self.cores[process] = cores
+        return process
 
     def wait(
         self, handles: list[subprocess.Popen[bytes]]
@@ -174,6 +206,8 @@ class LocalExecutor:
             for process in handles:
                 code = process.poll()
                 if code is not None:
+                    if process in self.cores:
+                        self.free_cores.append(self.cores.pop(process))
                     return process, code
             time.sleep(0.2)
 

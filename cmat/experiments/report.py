@@ -121,7 +121,8 @@ def place(session: dict[str, Any]) -> str:
     """Where a session ran: 'cpu (N cores)', or 'BACKEND (DEVICE KIND)' on an accelerator."""
     backend = session.get("backend", "?")
     if backend == "cpu":
-        return f"cpu ({session.get('cpus', '?')} cores)"
+        cpus = session.get("cpus", "?")
+        return f"cpu ({cpus} core{'' if cpus == 1 else 's'})"
     return f"{backend} ({session.get('device', '?')})"
 
 

@@ -94,9 +94,9 @@ def run_experiment(
         jobs = schedule([run for run in selected if run.status in (NEW, RESUME, REDO)])
         if jobs and not report_only:
             cache = out / "jax_cache"
-            executor = (RayExecutor(ray_address, cache) if ray_address is not None
-                        else LocalExecutor(cache))
             limit = parallel or (len(jobs) if ray_address is not None else default_parallel())
+            executor = (RayExecutor(ray_address, cache) if ray_address is not None
+                        else LocalExecutor(cache, limit))
             execute(jobs, executor, limit, out)
         written = write_report(plan)
         for path in written:
