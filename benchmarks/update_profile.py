@@ -16,6 +16,10 @@ pass of a network module, from the instructions' metadata), elementwise fusions 
 and the top `--top` operations; `--dump DIR` also writes the optimised HLO and every operation's
 time. Shares are of the operations' busy time; its ratio to the wall time is the average number
 of threads at work. Also printed: XLA's FLOP count of the update and its achieved FLOP/s.
+
+`--program training` profiles the program that trains instead: `cmat.runners.trainer.JaxTrainer`'s
+chunk of one update (collection and update, vmapped over the run's seeds, inside the chunk's
+scan), called on its own state, so XLA's choices there can be compared with `learn` alone.
 """
 
 from __future__ import annotations
@@ -100,6 +104,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--top", type=int, default=20)
     parser.add_argument("--set", nargs="*", default=[], help="config overrides")
+    parser.add_argument("--program", choices=["update", "training"], default="update",
+                        help="update: `learn` alone on a fixed rollout; training: the program "
+                             "that trains (one chunk of one update: collection, update, vmapped "
+                             "over seeds, inside the chunk's scan)")
     parser.add_argument("--dump", type=Path, default=None,
                         help="write the optimised HLO (update.hlo) and every operation's seconds "
                              "per update (operations.json) into this folder")
@@ -112,23 +120,38 @@ def main() -> None:
     from cmat.runners import trainer
     from cmat.runners.learner import learn
 
+    overrides = [f"env={args.env}", f"algo={args.algo}", *args.set]
     try:
-        config = load_config(overrides=[f"env={args.env}", f"algo={args.algo}", *args.set])
+        config = load_config(overrides=[*overrides, "log_interval=1"])
         setup = trainer.build_setup(config)
     except CmatError as error:
         parser.error(str(error))
-    state = trainer.init_state(setup, jax.random.PRNGKey(0))
-    _, rollout = jax.jit(setup.collector.collect)(state.learner.params, state.envs,
-                                                  jax.random.PRNGKey(1))
-    update = jax.jit(lambda learner, rollout: learn(setup.learner, learner, rollout))
-    compiled = update.lower(state.learner, rollout).compile()
+    if args.program == "training":
+        runner = trainer.JaxTrainer(config)
+        state = runner.init()
+        one = jax.numpy.asarray(1, jax.numpy.int32)
+        compiled = runner._chunk.lower(state, one).compile()
+
+        def run_once() -> Any:
+            nonlocal state
+            state, _ = compiled(state, one)
+            return state
+    else:
+        fresh = trainer.init_state(setup, jax.random.PRNGKey(0))
+        _, rollout = jax.jit(setup.collector.collect)(fresh.learner.params, fresh.envs,
+                                                      jax.random.PRNGKey(1))
+        update = jax.jit(lambda learner, rollout: learn(setup.learner, learner, rollout))
+        compiled = update.lower(fresh.learner, rollout).compile()
+
+        def run_once() -> Any:
+            return compiled(fresh.learner, rollout)
     flops = float((compiled.cost_analysis() or {}).get("flops", float("nan")))
-    jax.block_until_ready(compiled(state.learner, rollout))
+    jax.block_until_ready(run_once())
     with tempfile.TemporaryDirectory() as directory:
         with jax.profiler.trace(directory, create_perfetto_trace=True):
             start = time.perf_counter()
             for _ in range(args.repeats):
-                jax.block_until_ready(compiled(state.learner, rollout))
+                jax.block_until_ready(run_once())
             wall = (time.perf_counter() - start) / args.repeats
         events = trace_events(Path(directory))
     operations = hlo_operations(compiled.as_text() or "")
@@ -139,6 +162,13 @@ def main() -> None:
             totals[event["name"]] += event["dur"] / 1e6 / args.repeats
             counts[event["name"]] += 1
     measured = sum(totals.values())
+    unmatched: collections.Counter[str] = collections.Counter()
+    threads: collections.Counter[Any] = collections.Counter()
+    for event in events:
+        if event["name"] in operations:
+            threads[event.get("tid")] += event["dur"] / 1e6 / args.repeats
+        else:
+            unmatched[event["name"]] += event["dur"] / 1e6 / args.repeats
     if args.dump is not None:
         args.dump.mkdir(parents=True, exist_ok=True)
         (args.dump / "update.hlo").write_text(compiled.as_text() or "")
@@ -147,10 +177,17 @@ def main() -> None:
                     "part": operations[name][2],
                     "seconds": seconds, "calls": counts[name] // args.repeats}
              for name, seconds in totals.most_common()}, indent=1))
-    print(f"{args.algo} on {args.env} ({' '.join(args.set) or 'its defaults'}): one update "
-          f"{wall:.3f} s ({config.steps_per_update / wall:.0f} env steps/s for the update "
-          f"alone); {flops / 1e9:.2f} GFLOP, {flops / wall / 1e9:.1f} GFLOP/s; operations "
+    what = ("one training chunk of one update" if args.program == "training"
+            else "one update alone")
+    steps = config.steps_per_update * (config.seeds if args.program == "training" else 1)
+    print(f"{args.algo} on {args.env} ({' '.join(args.set) or 'its defaults'}): {what} "
+          f"{wall:.3f} s ({steps / wall:.0f} env steps/s); "
+          f"{flops / 1e9:.2f} GFLOP, {flops / wall / 1e9:.1f} GFLOP/s; operations "
           f"busy {measured:.3f} s per update ({measured / wall:.2f} threads on average)")
+    print("operations' busy seconds by thread: " + ", ".join(
+        f"{seconds:.3f}" for _, seconds in threads.most_common(8)))
+    print("other trace events (not an instruction of the program; nested, so they overlap): "
+          + ", ".join(f"{name} {seconds:.3f} s" for name, seconds in unmatched.most_common(6)))
     kinds: collections.Counter[str] = collections.Counter()
     parts: collections.Counter[str] = collections.Counter()
     elementwise: collections.Counter[str] = collections.Counter()
