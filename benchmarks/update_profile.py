@@ -120,9 +120,9 @@ def main() -> None:
     from cmat.runners import trainer
     from cmat.runners.learner import learn
 
-    overrides = [f"env={args.env}", f"algo={args.algo}", *args.set]
     try:
-        config = load_config(overrides=[*overrides, "log_interval=1"])
+        config = load_config(
+            overrides=[f"env={args.env}", f"algo={args.algo}", *args.set, "log_interval=1"])
         setup = trainer.build_setup(config)
     except CmatError as error:
         parser.error(str(error))
@@ -157,18 +157,17 @@ def main() -> None:
     operations = hlo_operations(compiled.as_text() or "")
     totals: collections.Counter[str] = collections.Counter()
     counts: collections.Counter[str] = collections.Counter()
-    for event in events:
-        if event["name"] in operations:
-            totals[event["name"]] += event["dur"] / 1e6 / args.repeats
-            counts[event["name"]] += 1
-    measured = sum(totals.values())
-    unmatched: collections.Counter[str] = collections.Counter()
     threads: collections.Counter[Any] = collections.Counter()
+    unmatched: collections.Counter[str] = collections.Counter()
     for event in events:
+        seconds = event["dur"] / 1e6 / args.repeats
         if event["name"] in operations:
-            threads[event.get("tid")] += event["dur"] / 1e6 / args.repeats
+            totals[event["name"]] += seconds
+            counts[event["name"]] += 1
+            threads[event.get("tid")] += seconds
         else:
-            unmatched[event["name"]] += event["dur"] / 1e6 / args.repeats
+            unmatched[event["name"]] += seconds
+    measured = sum(totals.values())
     if args.dump is not None:
         args.dump.mkdir(parents=True, exist_ok=True)
         (args.dump / "update.hlo").write_text(compiled.as_text() or "")
