@@ -10,10 +10,14 @@ program needs: with the environments sharded, each device steps its share of the
 update's means over the batch (the loss, hence the gradients) are reduced across devices. A run
 on several devices therefore computes what it computes on one, up to floating-point order
 (tests/test_devices.py). Host runs (`HostTrainer`) stay on one device.
+
+On CPU the trainers compile their programs with YNNPACK fusions off (`compiler_options`).
 """
 
 from __future__ import annotations
 
+import functools
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -24,6 +28,11 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from cmat.runners.base import TrainerState
 
 AXIS = "devices"
+
+CPU_COMPILER_OPTIONS = (("xla_cpu_experimental_ynn_fusion_type", ""),)
+"""XLA options of cmat's programs on CPU: no elementwise fusions through YNNPACK, which XLA's
+CPU backend makes by default (jax 0.10). Training steps/s with them off against on: README,
+Speed ("YNNPACK fusions off")."""
 
 partition_spec: Callable[..., PartitionSpec] = PartitionSpec
 """`PartitionSpec`, whose constructor jax leaves untyped."""
@@ -57,3 +66,21 @@ def place(state: TrainerState, devices: list[Any], axis: str | None) -> TrainerS
         )
     placed: TrainerState = jax.device_put(state, shardings)
     return placed
+
+
+def compiler_options() -> dict[str, str]:
+    """`jax.jit(..., compiler_options=...)` for the trainers' programs: `CPU_COMPILER_OPTIONS`
+    when JAX computes on CPU, its XLA knows them, and the user's `XLA_FLAGS` do not already set
+    YNNPACK's fusions (a user's own choice wins); else nothing."""
+    return dict(_cpu_compiler_options())
+
+
+@functools.cache
+def _cpu_compiler_options() -> tuple[tuple[str, str], ...]:
+    if jax.default_backend() != "cpu" or "ynn_fusion_type" in os.environ.get("XLA_FLAGS", ""):
+        return ()
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=dict(CPU_COMPILER_OPTIONS))(np.float32(0))
+    except jax.errors.JaxRuntimeError:  # an XLA without the option
+        return ()
+    return CPU_COMPILER_OPTIONS

@@ -41,6 +41,7 @@ from cmat.runners.base import (
     state_to_bytes,
 )
 from cmat.runners.collector import env_actions
+from cmat.runners.devices import compiler_options
 from cmat.runners.evaluation import split_evenly, tally_result, tally_start, tally_step
 from cmat.runners.learner import (
     LearnerSetup,
@@ -107,12 +108,14 @@ class HostTrainer:
         self.env_spec = probe.spec
         self._spare = [probe]  # becomes the first environment of an in-process pool
         self.learner_setup = build_learner(config, self.env_spec)
-        self._init = jax.jit(partial(host_learner, self.learner_setup))
-        self._policy = jax.jit(partial(policy_step, self.learner_setup))
-        self._greedy = jax.jit(partial(greedy_step, self.learner_setup))
+        options = compiler_options()
+        self._init = jax.jit(partial(host_learner, self.learner_setup), compiler_options=options)
+        self._policy = jax.jit(partial(policy_step, self.learner_setup), compiler_options=options)
+        self._greedy = jax.jit(partial(greedy_step, self.learner_setup), compiler_options=options)
         self._learn = jax.jit(
             jax.vmap(partial(learn, self.learner_setup), in_axes=(0, Rollout._make((1, 0, 0, 0)))),
             donate_argnums=0,
+            compiler_options=options,
         )
         self._summarise = jax.jit(jax.vmap(partial(summarise_updates, self.env_spec)))
         self._pool: InProcessPool | WorkerPool | None = None

@@ -31,7 +31,7 @@ from cmat.runners.base import (
     state_to_bytes,
 )
 from cmat.runners.collector import InGraphCollector
-from cmat.runners.devices import place, sharded_axis
+from cmat.runners.devices import compiler_options, place, sharded_axis
 from cmat.runners.evaluation import evaluate_in_graph
 from cmat.runners.learner import LearnerSetup, build_learner, init_learner, learn, summarise_updates
 
@@ -130,13 +130,15 @@ class JaxTrainer:
         self.sharded_axis = sharded_axis(len(self.devices), config.seeds, config.num_envs)
         chunk = config.updates_per_log
         collector = self.setup.collector
-        self._init = jax.jit(lambda rng: init_state(self.setup, rng))
+        options = compiler_options()
+        self._init = jax.jit(lambda rng: init_state(self.setup, rng), compiler_options=options)
         self._chunk = jax.jit(
             jax.vmap(
                 lambda state, updates: run_updates(self.setup, state, chunk, updates),
                 in_axes=(0, None),
             ),
             donate_argnums=0,
+            compiler_options=options,
         )
         self._evaluate = jax.jit(
             jax.vmap(
@@ -145,6 +147,7 @@ class JaxTrainer:
                 in_axes=(0, 0, None),
             ),
             static_argnums=2,
+            compiler_options=options,
         )
 
     def init(self) -> TrainerState:
