@@ -1,8 +1,10 @@
-"""The trainers compile their programs on CPU without YNNPACK fusions, unless the user's
+"""The trainers compile their programs on CPU without YNNPACK's elementwise fusions, with
+YNNPACK's matmuls where the algorithm asks for them, and as XLA would where the user's
 `XLA_FLAGS` choose YNNPACK's fusions themselves (cmat.runners.devices.compiler_options)."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import jax
@@ -27,31 +29,54 @@ def compiled_text(lowered: jax.stages.Lowered) -> str:
     return text
 
 
-def makes_ynn_fusions(text: str) -> bool:
-    return "ynn_fusion" in text
+def ynn_fusions(text: str) -> list[set[str]]:
+    """The HLO operations inside each of the compiled program's YNNPACK fusions."""
+    fusions = []
+    for name in re.findall(r'calls=(%[\w.\-]+)[^\n]*"kind":"__ynn_fusion"', text):
+        body = re.search(re.escape(name) + r" \([^\n]*\{\n(.*?)\n\}", text, re.S)
+        assert body is not None, name
+        fusions.append(set(re.findall(r"= \S+ (\w[\w\-]*)\(", body.group(1))))
+    return fusions
 
 
-def test_training_program_has_no_ynnpack_fusions(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv("XLA_FLAGS", raising=False)
-    elementwise = jax.jit(lambda x: jnp.tanh(2.0 * x + 1.0).sum(0))
-    if not makes_ynn_fusions(compiled_text(elementwise.lower(jnp.ones((256, 64))))):
-        pytest.skip("this XLA makes no YNNPACK fusions by default")
-    config = load_config(overrides=["env=matrix:fig1", "algo=mappo", "num_envs=4",
+def training_program(algo: str) -> str:
+    config = load_config(overrides=["env=matrix:fig1", f"algo={algo}", "num_envs=4",
                                     "rollout_length=4", "total_steps=32", "log_interval=2",
                                     "ppo.epochs=1", "network.n_embd=16"])
     trainer = JaxTrainer(config)
-    state = trainer.init()
-    program = compiled_text(trainer._chunk.lower(state, jnp.int32(2)))
-    assert devices.compiler_options() == dict(devices.CPU_COMPILER_OPTIONS)
-    assert "fusion" in program and not makes_ynn_fusions(program)
+    return compiled_text(trainer._chunk.lower(trainer.init(), jnp.int32(2)))
+
+
+MATMUL_OPERATIONS = {"parameter", "bitcast", "copy", "transpose", "dot"}
+
+
+@pytest.fixture
+def xla_makes_ynn_fusions(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    elementwise = jax.jit(lambda x: jnp.tanh(2.0 * x + 1.0).sum(0))
+    fusions = ynn_fusions(compiled_text(elementwise.lower(jnp.ones((256, 64)))))
+    if not any(ops - MATMUL_OPERATIONS for ops in fusions):
+        pytest.skip("this XLA makes no elementwise YNNPACK fusions by default")
+
+
+@pytest.mark.usefixtures("xla_makes_ynn_fusions")
+def test_mlp_training_program_has_no_ynnpack_fusions() -> None:
+    program = training_program("mappo")
+    assert "fusion" in program and ynn_fusions(program) == []
+
+
+@pytest.mark.usefixtures("xla_makes_ynn_fusions")
+def test_transformer_training_program_has_ynnpack_matmuls_only() -> None:
+    fusions = ynn_fusions(training_program("cmat"))
+    assert fusions and all("dot" in ops and ops <= MATMUL_OPERATIONS for ops in fusions), fusions
 
 
 def test_users_xla_flags_choose_ynnpack_fusions(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=elementwise")
-    assert devices.compiler_options() == {}
+    assert devices.compiler_options() == devices.compiler_options(ynnpack_matmuls=True) == {}
 
 
 def test_no_options_off_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    assert devices.compiler_options() == {}
+    assert devices.compiler_options() == devices.compiler_options(ynnpack_matmuls=True) == {}

@@ -99,6 +99,11 @@ class Algorithm(Protocol):
     presets: ClassVar[dict[str, dict[str, Any]]]
     """Named sets of config values (`TrainConfig.preset`); 'paper' is the paper's setting."""
 
+    ynnpack_matmuls: ClassVar[bool]
+    """On CPU, whether its programs run their matmuls through YNNPACK (XLA's other YNNPACK
+    fusions stay off either way; `cmat.runners.devices.compiler_options`): True where that was
+    measured faster (README, Speed)."""
+
     @classmethod
     def build(
         cls, network: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None

@@ -97,6 +97,7 @@ class CMAT(PPOAlgorithm):
 
     output_axes: ClassVar[Any] = PolicyOutput._make((0, None, 0, 0, 0, 0, 0))
     """The network output's batch axes (`chunked`): the log-std is shared by every sample."""
+    ynnpack_matmuls: ClassVar[bool] = True
     presets: ClassVar[dict[str, dict[str, Any]]] = {
         "paper": PAPER_SETTINGS, "tuned": TUNED_SETTINGS,
     }

@@ -50,6 +50,7 @@ class MAT(PPOAlgorithm):
         "n_embd", "n_head", "n_block", "init_gain", "log_std_init")
     """The encoder-decoder's sizes (MATNetwork)."""
 
+    ynnpack_matmuls: ClassVar[bool] = True
     presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
     """'paper': the paper's comparison setting, the reference settings with 8 rollout
     threads."""

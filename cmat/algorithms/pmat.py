@@ -62,6 +62,7 @@ class PMAT(PPOAlgorithm):
     reference_defaults: ClassVar[dict[str, Any]] = MAT.reference_defaults
     """PMAT is built on the reference MAT code and trains as it does."""
     presets: ClassVar[dict[str, dict[str, Any]]] = MAT.presets
+    ynnpack_matmuls: ClassVar[bool] = True
 
     @classmethod
     def build(

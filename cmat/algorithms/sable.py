@@ -126,6 +126,8 @@ class Sable(MAT):
     """The retention encoder-decoder's sizes and its memory (SableNetwork)."""
 
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
+    ynnpack_matmuls: ClassVar[bool] = False
+    """Measured no faster with them (0.97 on SMAX 2s3z; README, Speed)."""
 
     reference_defaults: ClassVar[dict[str, Any]] = {
         "ppo": {

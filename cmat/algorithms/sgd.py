@@ -131,6 +131,7 @@ class PPOAlgorithm:
     capabilities: ClassVar[frozenset[str]] = frozenset()
     reference_defaults: ClassVar[dict[str, Any]] = {}
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
+    ynnpack_matmuls: ClassVar[bool] = False
 
     @property
     def recurrent(self) -> bool:

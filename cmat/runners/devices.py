@@ -11,7 +11,7 @@ update's means over the batch (the loss, hence the gradients) are reduced across
 on several devices therefore computes what it computes on one, up to floating-point order
 (tests/test_devices.py). Host runs (`HostTrainer`) stay on one device.
 
-On CPU the trainers compile their programs with YNNPACK fusions off (`compiler_options`).
+On CPU the trainers compile their programs with XLA options of their own (`compiler_options`).
 """
 
 from __future__ import annotations
@@ -29,10 +29,11 @@ from cmat.runners.base import TrainerState
 
 AXIS = "devices"
 
-CPU_COMPILER_OPTIONS = (("xla_cpu_experimental_ynn_fusion_type", ""),)
-"""XLA options of cmat's programs on CPU: no elementwise fusions through YNNPACK, which XLA's
-CPU backend makes by default (jax 0.10). Training steps/s with them off against on: README,
-Speed ("YNNPACK fusions off")."""
+YNNPACK_FUSIONS = "xla_cpu_experimental_ynn_fusion_type"
+"""The XLA option that says which operations XLA's CPU backend hands to YNNPACK (by default in
+jax 0.10: elementwise operations and reductions among them)."""
+YNNPACK_MATMULS = "LIBRARY_FUSION_TYPE_DOT"
+"""Its value for matmuls only."""
 
 partition_spec: Callable[..., PartitionSpec] = PartitionSpec
 """`PartitionSpec`, whose constructor jax leaves untyped."""
@@ -68,19 +69,24 @@ def place(state: TrainerState, devices: list[Any], axis: str | None) -> TrainerS
     return placed
 
 
-def compiler_options() -> dict[str, str]:
-    """`jax.jit(..., compiler_options=...)` for the trainers' programs: `CPU_COMPILER_OPTIONS`
-    when JAX computes on CPU, its XLA knows them, and the user's `XLA_FLAGS` do not already set
-    YNNPACK's fusions (a user's own choice wins); else nothing."""
-    return dict(_cpu_compiler_options())
+def compiler_options(ynnpack_matmuls: bool = False) -> dict[str, str]:
+    """`jax.jit(..., compiler_options=...)` for the trainers' programs on CPU: no elementwise or
+    reduction fusions through YNNPACK, and matmuls through YNNPACK where `ynnpack_matmuls` (the
+    algorithm's `Algorithm.ynnpack_matmuls`), else through XLA's own (Eigen) kernels. Nothing
+    where JAX computes on another platform, where the installed XLA does not know the option or
+    value, or where the user's `XLA_FLAGS` set YNNPACK's fusions themselves (their choice wins).
+    Training steps/s against XLA's defaults: README, Speed ("YNNPACK fusions")."""
+    return dict(_cpu_compiler_options(ynnpack_matmuls))
 
 
 @functools.cache
-def _cpu_compiler_options() -> tuple[tuple[str, str], ...]:
+def _cpu_compiler_options(ynnpack_matmuls: bool) -> tuple[tuple[str, str], ...]:
     if jax.default_backend() != "cpu" or "ynn_fusion_type" in os.environ.get("XLA_FLAGS", ""):
         return ()
-    try:
-        jax.jit(lambda x: x + 1, compiler_options=dict(CPU_COMPILER_OPTIONS))(np.float32(0))
-    except jax.errors.JaxRuntimeError:  # an XLA without the option
-        return ()
-    return CPU_COMPILER_OPTIONS
+    for value in (YNNPACK_MATMULS, "") if ynnpack_matmuls else ("",):
+        try:
+            jax.jit(lambda x: x + 1, compiler_options={YNNPACK_FUSIONS: value})(np.float32(0))
+        except jax.errors.JaxRuntimeError:  # an XLA without the option or the value
+            continue
+        return ((YNNPACK_FUSIONS, value),)
+    return ()

@@ -108,7 +108,7 @@ class HostTrainer:
         self.env_spec = probe.spec
         self._spare = [probe]  # becomes the first environment of an in-process pool
         self.learner_setup = build_learner(config, self.env_spec)
-        options = compiler_options()
+        options = compiler_options(self.learner_setup.algorithm.ynnpack_matmuls)
         self._init = jax.jit(partial(host_learner, self.learner_setup), compiler_options=options)
         self._policy = jax.jit(partial(policy_step, self.learner_setup), compiler_options=options)
         self._greedy = jax.jit(partial(greedy_step, self.learner_setup), compiler_options=options)

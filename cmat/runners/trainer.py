@@ -130,7 +130,7 @@ class JaxTrainer:
         self.sharded_axis = sharded_axis(len(self.devices), config.seeds, config.num_envs)
         chunk = config.updates_per_log
         collector = self.setup.collector
-        options = compiler_options()
+        options = compiler_options(self.learner_setup.algorithm.ynnpack_matmuls)
         self._init = jax.jit(lambda rng: init_state(self.setup, rng), compiler_options=options)
         self._chunk = jax.jit(
             jax.vmap(
