@@ -15,6 +15,8 @@ from cmat.resolve import load_config
 from cmat.runners import devices
 from cmat.runners.trainer import JaxTrainer
 
+pytestmark = pytest.mark.quick_compiles
+
 
 @pytest.fixture(autouse=True)
 def fresh_options() -> Iterator[None]:
