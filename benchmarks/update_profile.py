@@ -2,14 +2,15 @@
 
     python benchmarks/update_profile.py                          # CMAT, SMAX 6h_vs_8z
     python benchmarks/update_profile.py --algo mat --top 25
-    python benchmarks/update_profile.py --set network.compute_dtype=bfloat16
+    python benchmarks/update_profile.py --set ppo.epochs=5 --program training
     python benchmarks/update_profile.py --env smax:50m --set num_envs=8 rollout_length=25 \
         --dump DIR
 
 Collects one rollout with the algorithm's own config for `--env`, compiles `learn` (target-critic
 GAE, every epoch and minibatch of the algorithm's update, the target critic's soft update) on that
-fixed rollout, runs it once to warm up, then `--repeats` times under `jax.profiler.trace`. The
-trace's per-operation events (XLA's CPU runtime records one per executed thunk) are matched to
+fixed rollout with the trainers' compile options (`cmat.runners.devices.compiler_options`), runs
+it once to warm up, then `--repeats` times under `jax.profiler.trace`. The trace's per-operation
+events (XLA's CPU runtime records one per executed thunk) are matched to
 the optimised HLO's instructions and summed: by kind (plain matmuls, batched matmuls, fusions
 that contain either, elementwise fusions, other opcodes), by network part (forward or backward
 pass of a network module, from the instructions' metadata), elementwise fusions by output shape,
@@ -118,6 +119,7 @@ def main() -> None:
     from cmat.errors import CmatError
     from cmat.resolve import load_config
     from cmat.runners import trainer
+    from cmat.runners.devices import compiler_options
     from cmat.runners.learner import learn
 
     try:
@@ -140,7 +142,10 @@ def main() -> None:
         fresh = trainer.init_state(setup, jax.random.PRNGKey(0))
         _, rollout = jax.jit(setup.collector.collect)(fresh.learner.params, fresh.envs,
                                                       jax.random.PRNGKey(1))
-        update = jax.jit(lambda learner, rollout: learn(setup.learner, learner, rollout))
+        update = jax.jit(
+            lambda learner, rollout: learn(setup.learner, learner, rollout),
+            compiler_options=compiler_options(setup.learner.algorithm.ynnpack_matmuls),
+        )
         compiled = update.lower(fresh.learner, rollout).compile()
 
         def run_once() -> Any:
