@@ -8,15 +8,15 @@
 
 Collects one rollout with the algorithm's own config for `--env`, compiles `learn` (target-critic
 GAE, every epoch and minibatch of the algorithm's update, the target critic's soft update) on that
-fixed rollout with the trainers' compile options (`cmat.runners.devices.compiler_options`), runs
-it once to warm up, then `--repeats` times under `jax.profiler.trace`. The trace's per-operation
-events (XLA's CPU runtime records one per executed thunk) are matched to
-the optimised HLO's instructions and summed: by kind (plain matmuls, batched matmuls, fusions
-that contain either, elementwise fusions, other opcodes), by network part (forward or backward
-pass of a network module, from the instructions' metadata), elementwise fusions by output shape,
-and the top `--top` operations; `--dump DIR` also writes the optimised HLO and every operation's
-time. Shares are of the operations' busy time; its ratio to the wall time is the average number
-of threads at work. Also printed: XLA's FLOP count of the update and its achieved FLOP/s.
+fixed rollout with the trainers' compile options (`cmat.runners.devices.compiler_options`), runs it
+once to warm up, then `--repeats` times under `jax.profiler.trace`. The trace's per-operation
+events (XLA's CPU runtime records one per executed thunk) are matched to the optimised HLO's
+instructions and summed: by kind (plain matmuls, batched matmuls, fusions that contain either,
+elementwise fusions, other opcodes), by network part (forward or backward pass of a network module,
+from the instructions' metadata), elementwise fusions by output shape, and the top `--top`
+operations; `--dump DIR` also writes the optimised HLO and every operation's time. Shares are of
+the operations' busy time; its ratio to the wall time is the average number of threads at work.
+Also printed: XLA's FLOP count of the update and its achieved FLOP/s.
 
 `--program training` profiles the program that trains instead: `cmat.runners.trainer.JaxTrainer`'s
 chunk of one update (collection and update, vmapped over the run's seeds, inside the chunk's
