@@ -1,19 +1,30 @@
 """Training steps/s and peak memory as the team grows: CMAT (m = n, and m fixed), MAT, MAPPO.
 
     python benchmarks/agent_scaling.py --out DIR [--teams 3m 8m 25m 27m_vs_30m 50m 100m]
-        [--lines cmat mat ...] [--envs 8] [--rollout 25] [--updates 2] [--merge OLD.json ...]
+        [--lines cmat mat ...] [--envs 8] [--rollout 25] [--updates 2] [--repeats 1]
+        [--merge OLD.json ...]
 
 Every team is a SMAX map (`smax:Nm` beyond SMAX's own: N marines a side, built with SMAX's
 scenario API). One config for every point: the reference PPO settings (15 epochs, one
 minibatch) with `--envs` environments × `--rollout` steps per update. Each point is one fresh
-process: it compiles a chunk of `--updates` updates, times a second chunk (training steps/s,
-all of one seed's env steps over wall time) and reports the process's peak resident memory
-(which includes compilation). CMAT's decoder runs m iterations, m = n by default; the
-'cmat m=4' line fixes m = 4 to show what the knob buys. Writes DIR/agent_scaling.png,
-DIR/agent_scaling.md and DIR/agent_scaling.json (the points) and prints the table. `--merge`
-adds the points of earlier runs' JSON files (this run's points replace theirs), so one table
-can gather points that took several sessions (at the same --envs/--rollout/--updates); the
-table names the run (output directory name) each row's points came from.
+process: it compiles a chunk of `--updates` updates, times `--repeats` further chunks (training
+steps/s, all of one seed's env steps over wall time; the point's figure is their median) and
+reports the process's peak resident memory (which includes compilation). CMAT's decoder runs m
+iterations, m = n by default; the 'cmat m=4' line fixes m = 4 to show what the knob buys.
+
+Growth with the team: for each line, the exponent b of time per env step ∝ n^b is the
+least-squares slope of log(1 / steps/s) on log n over the line's points, and for every other
+line the difference of its exponent from MAT's over the teams both have: whether CMAT's time
+per step grows faster than MAT's. Their 95% intervals come from a bootstrap over the timed
+chunks (each point's chunk times resampled, the median refitted; `--repeats` ≥ 2 gives an
+interval, one chunk per point gives the exponent alone): they measure timing noise, not how
+well a power law fits.
+
+Writes DIR/agent_scaling.png, DIR/agent_scaling.md and DIR/agent_scaling.json (the points)
+and prints the table and exponents. `--merge` adds the points of earlier runs' JSON files (this
+run's points replace theirs), so one table can gather points that took several sessions (at
+the same --envs/--rollout/--updates); the table names the run (output directory name) each
+row's points came from.
 """
 
 from __future__ import annotations
@@ -33,33 +44,39 @@ LINES = {
     "mappo": ("mappo", []),
 }
 
+Points = dict[str, dict[str, Any] | str]
+"""One line's points by team: the measured point, or the error it failed with."""
+
 POINT = r"""
-import json, resource, sys, time
+import json, resource, statistics, sys, time
 import jax
 from cmat.resolve import load_config
 from cmat.runners.trainer import JaxTrainer
-env, algo, envs, rollout, updates, *extra = sys.argv[1:]
+env, algo, envs, rollout, updates, repeats, *extra = sys.argv[1:]
 config = load_config(overrides=[f"env=smax:{env}", f"algo={algo}", f"num_envs={envs}",
                                 f"rollout_length={rollout}", f"log_interval={updates}", *extra])
 trainer = JaxTrainer(config)
 state = trainer.init()
 state, _ = trainer.train_chunk(state)
 jax.block_until_ready(state.learner.params)
-start = time.perf_counter()
-state, _ = trainer.train_chunk(state)
-jax.block_until_ready(state.learner.params)
-seconds = time.perf_counter() - start
-print(json.dumps({"n": trainer.env_spec.num_agents,
-                  "sps": int(updates) * config.steps_per_update / seconds,
+runs = []
+for _ in range(int(repeats)):
+    start = time.perf_counter()
+    state, _ = trainer.train_chunk(state)
+    jax.block_until_ready(state.learner.params)
+    runs.append(int(updates) * config.steps_per_update / (time.perf_counter() - start))
+print(json.dumps({"n": trainer.env_spec.num_agents, "sps": statistics.median(runs),
+                  "sps_runs": runs,
                   "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
 
 def measure(team: str, algo: str, extra: list[str], envs: int, rollout: int,
-            updates: int) -> dict[str, Any] | str:
+            updates: int, repeats: int) -> dict[str, Any] | str:
     """One point in its own process; the error's last line where it failed (e.g. memory)."""
     done = subprocess.run(
-        [sys.executable, "-c", POINT, team, algo, str(envs), str(rollout), str(updates), *extra],
+        [sys.executable, "-c", POINT, team, algo, str(envs), str(rollout), str(updates),
+         str(repeats), *extra],
         capture_output=True, text=True, check=False, env={**os.environ},
     )
     if done.returncode != 0:
@@ -71,17 +88,21 @@ def measure(team: str, algo: str, extra: list[str], envs: int, rollout: int,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--teams", nargs="+",
+    parser.add_argument("--teams", nargs="*",
                         default=["3m", "8m", "25m", "27m_vs_30m", "50m", "100m"])
     parser.add_argument("--lines", nargs="+", default=list(LINES), choices=list(LINES))
     parser.add_argument("--envs", type=int, default=8)
     parser.add_argument("--rollout", type=int, default=25)
     parser.add_argument("--updates", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="timed chunks per point (median reported; >= 2 for intervals)")
     parser.add_argument("--merge", type=Path, nargs="*", default=[],
                         help="agent_scaling.json files of earlier runs to include")
     args = parser.parse_args()
+    if args.repeats < 1:
+        parser.error(f"--repeats must be at least 1, got {args.repeats}")
     args.out.mkdir(parents=True, exist_ok=True)
-    results: dict[str, dict[str, dict[str, Any] | str]] = {}
+    results: dict[str, Points] = {}
     for path in args.merge:
         try:
             earlier = json.loads(path.read_text())
@@ -93,7 +114,8 @@ def main() -> None:
     for team in args.teams:
         for line in args.lines:
             algo, extra = LINES[line]
-            point = measure(team, algo, extra, args.envs, args.rollout, args.updates)
+            point = measure(team, algo, extra, args.envs, args.rollout, args.updates,
+                            args.repeats)
             if not isinstance(point, str):
                 point["run"] = run
             results.setdefault(line, {})[team] = point
@@ -104,7 +126,57 @@ def main() -> None:
     write(results, args)
 
 
-def write(results: dict[str, dict[str, dict[str, Any] | str]], args: argparse.Namespace) -> None:
+def growth_exponent(points: Points, teams: list[str], rng: Any,
+                    draws: int = 2000) -> tuple[float, Any]:
+    """b of time per env step ∝ n^b over `teams` (least squares on log-log), and the bootstrap
+    draws of b (each point's chunk times resampled with replacement, their median refitted).
+    Points of earlier runs without per-chunk times count as one chunk."""
+    import numpy as np
+
+    log_n = np.log([points[team]["n"] for team in teams])  # type: ignore[index]
+    runs = [np.asarray(points[team].get("sps_runs", [points[team]["sps"]]))  # type: ignore[union-attr]
+            for team in teams]
+    def slope(sps: Any) -> float:
+        return float(np.polyfit(log_n, -np.log(sps), 1)[0])
+
+    estimate = slope(np.array([np.median(r) for r in runs]))
+    resampled = np.array([[np.median(rng.choice(r, size=len(r))) for r in runs]
+                          for _ in range(draws)])
+    return estimate, np.array([slope(row) for row in resampled])
+
+
+def exponents(results: dict[str, Points], lines: list[str]) -> list[str]:
+    """One line of text per algorithm line: its growth exponent, and for every other line the
+    difference from MAT's exponent (the first line's without MAT) over their common teams,
+    with 95% bootstrap intervals where a point has more than one timed chunk."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    def measured(line: str) -> list[str]:
+        return [team for team, p in results[line].items() if isinstance(p, dict)]
+
+    def interval(draws: Any) -> str:
+        low, high = np.percentile(draws, [2.5, 97.5])
+        return "" if low == high else f" [{low:.2f}, {high:.2f}]"
+
+    reference = "mat" if "mat" in lines else lines[0]
+    text = []
+    for line in lines:
+        teams = measured(line)
+        if len(teams) < 2:
+            continue
+        b, draws = growth_exponent(results[line], teams, rng)
+        text.append(f"{line}: time per step ∝ n^{b:.2f}{interval(draws)} ({len(teams)} teams)")
+        common = [team for team in teams if team in measured(reference)]
+        if line != reference and len(common) >= 2:
+            b_line, draws_line = growth_exponent(results[line], common, rng)
+            b_reference, draws_reference = growth_exponent(results[reference], common, rng)
+            text.append(f"  {line} − {reference}: {b_line - b_reference:+.2f}"
+                        f"{interval(draws_line - draws_reference)} over {len(common)} teams")
+    return text
+
+
+def write(results: dict[str, Points], args: argparse.Namespace) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -128,7 +200,8 @@ def write(results: dict[str, dict[str, dict[str, Any] | str]], args: argparse.Na
         rows.append(f"| {team} | {ns[0]:.0f} | " if ns else f"| {team} | ? | ")
         runs = sorted({str(p.get("run", "?")) for p in points if isinstance(p, dict)})
         rows[-1] += " | ".join(cells) + f" | {', '.join(runs)} |"
-    table = "\n".join([header, "", *rows]) + "\n"
+    growth = exponents(results, lines)
+    table = "\n".join([header, "", *rows, "", *growth]) + "\n"
     (args.out / "agent_scaling.md").write_text(table)
     print(table)
     figure, (speed, memory) = plt.subplots(1, 2, figsize=(10, 4))
