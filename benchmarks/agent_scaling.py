@@ -126,16 +126,16 @@ def main() -> None:
     write(results, args)
 
 
-def growth_exponent(points: Points, teams: list[str], rng: Any,
+def growth_exponent(points: list[dict[str, Any]], rng: Any,
                     draws: int = 2000) -> tuple[float, Any]:
-    """b of time per env step ∝ n^b over `teams` (least squares on log-log), and the bootstrap
+    """b of time per env step ∝ n^b over `points` (least squares on log-log), and the bootstrap
     draws of b (each point's chunk times resampled with replacement, their median refitted).
     Points of earlier runs without per-chunk times count as one chunk."""
     import numpy as np
 
-    log_n = np.log([points[team]["n"] for team in teams])  # type: ignore[index]
-    runs = [np.asarray(points[team].get("sps_runs", [points[team]["sps"]]))  # type: ignore[union-attr]
-            for team in teams]
+    log_n = np.log([point["n"] for point in points])
+    runs = [np.asarray(point.get("sps_runs", [point["sps"]])) for point in points]
+
     def slope(sps: Any) -> float:
         return float(np.polyfit(log_n, -np.log(sps), 1)[0])
 
@@ -152,8 +152,8 @@ def exponents(results: dict[str, Points], lines: list[str]) -> list[str]:
     import numpy as np
 
     rng = np.random.default_rng(0)
-    def measured(line: str) -> list[str]:
-        return [team for team, p in results[line].items() if isinstance(p, dict)]
+    measured = {line: {team: p for team, p in results[line].items() if isinstance(p, dict)}
+                for line in lines}
 
     def interval(draws: Any) -> str:
         low, high = np.percentile(draws, [2.5, 97.5])
@@ -162,15 +162,16 @@ def exponents(results: dict[str, Points], lines: list[str]) -> list[str]:
     reference = "mat" if "mat" in lines else lines[0]
     text = []
     for line in lines:
-        teams = measured(line)
-        if len(teams) < 2:
+        points = measured[line]
+        if len(points) < 2:
             continue
-        b, draws = growth_exponent(results[line], teams, rng)
-        text.append(f"{line}: time per step ∝ n^{b:.2f}{interval(draws)} ({len(teams)} teams)")
-        common = [team for team in teams if team in measured(reference)]
+        b, draws = growth_exponent(list(points.values()), rng)
+        text.append(f"{line}: time per step ∝ n^{b:.2f}{interval(draws)} ({len(points)} teams)")
+        common = [team for team in points if team in measured[reference]]
         if line != reference and len(common) >= 2:
-            b_line, draws_line = growth_exponent(results[line], common, rng)
-            b_reference, draws_reference = growth_exponent(results[reference], common, rng)
+            b_line, draws_line = growth_exponent([points[t] for t in common], rng)
+            b_reference, draws_reference = growth_exponent(
+                [measured[reference][t] for t in common], rng)
             text.append(f"  {line} − {reference}: {b_line - b_reference:+.2f}"
                         f"{interval(draws_line - draws_reference)} over {len(common)} teams")
     return text
@@ -206,10 +207,10 @@ def write(results: dict[str, Points], args: argparse.Namespace) -> None:
     print(table)
     figure, (speed, memory) = plt.subplots(1, 2, figsize=(10, 4))
     for line in lines:
-        points = sorted((p["n"], p["sps"], p["peak_mb"]) for p in results[line].values()
-                        if not isinstance(p, str))
-        if points:
-            n, sps, mb = zip(*points, strict=True)
+        curve = sorted((p["n"], p["sps"], p["peak_mb"]) for p in results[line].values()
+                       if not isinstance(p, str))
+        if curve:
+            n, sps, mb = zip(*curve, strict=True)
             speed.plot(n, sps, marker="o", label=line)
             memory.plot(n, mb, marker="o", label=line)
     for axis, label in ((speed, "training steps/s"), (memory, "peak resident memory (MB)")):
