@@ -24,7 +24,8 @@ Writes DIR/agent_scaling.png, DIR/agent_scaling.md and DIR/agent_scaling.json (t
 and prints the table and exponents. `--merge` adds the points of earlier runs' JSON files (this
 run's points replace theirs), so one table can gather points that took several sessions (at
 the same --envs/--rollout/--updates); the table names the run (output directory name) each
-row's points came from.
+row's points came from. `--teams` with no names measures nothing and only redraws the merged
+points (and refits their exponents).
 """
 
 from __future__ import annotations
