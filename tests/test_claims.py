@@ -1,4 +1,4 @@
-"""The claims section: verdicts computed from final scores, never written in."""
+"""The claims section: verdicts computed from the lines' scores, never written in."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from cmat.experiments.claims import (
+    CLAIMS,
     NO_DATA,
     NOT_SEPARABLE,
     NOT_SUPPORTED,
@@ -60,8 +61,8 @@ LINES = {  # label: (variant, algo, figures, consensus source, m as configured)
 
 
 def summary(finals: dict[str, dict[str, list[float]]]) -> dict[str, Any]:
-    """A summary as `summarise` writes it: finals per task and line label, m resolved against
-    the task's team."""
+    """A summary as `summarise` writes it: scores per task and line label (each seed's last
+    evaluation too), m resolved against the task's team."""
     tasks = []
     for task in TASKS:
         lines = {}
@@ -69,7 +70,7 @@ def summary(finals: dict[str, dict[str, list[float]]]) -> dict[str, Any]:
             variant, algo, figures, source, m = LINES[label]
             iterations = None if m is None else TEAM[task] // (2 if m == "n/2" else 1)
             lines[label] = {"variant": variant, "algo": algo, "figures": figures,
-                            "finals": scores, "iterations": iterations,
+                            "scores": scores, "finals": scores, "iterations": iterations,
                             "consensus_source": source}
         metric = "episode_return" if task.startswith("matrix:") else "win_rate"
         tasks.append({"env": task, "label": task, "metric": metric, "lines": lines})
@@ -162,9 +163,29 @@ def test_swapping_the_lines_mirrors_the_probability(seed: int) -> None:
 def test_the_claims_table_shows_every_claim_and_its_evidence(spec: ExperimentSpec) -> None:
     data = summary(full_grid())
     data["claims"] = judge_claims(data, spec)
-    text = "\n".join(claims_section(data))
+    text = "\n".join(claims_section(data, "each seed's last greedy evaluation"))
     assert "## The paper's claims" in text
     for key in "abcde":
         assert f"| ({key}) " in text
     assert "CMAT vs MAT: 1.00 [1.00, 1.00]" in text
     assert "| (c) | CMAT | last | smax:3m | 1.00 [1.00, 1.00] | X |" in text
+
+
+def test_claims_are_judged_from_the_scores_named_and_both_verdicts_are_shown(
+    spec: ExperimentSpec,
+) -> None:
+    data = summary(full_grid())
+    for task in data["tasks"]:  # the last evaluations alone tie every line
+        for line in task["lines"].values():
+            line["finals"] = [0.5, 0.5, 0.5]
+    data["claims"] = judge_claims(data, spec)
+    data["claims_from_finals"] = judge_claims(data, spec, scores="finals")
+    assert by_key(data["claims"])["CMAT"]["verdict"] == SUPPORTED
+    assert by_key(data["claims_from_finals"])["CMAT"]["verdict"] == NOT_SEPARABLE
+    text = "\n".join(claims_section(data, "each seed's mean over the last 10%"))
+    assert "from this grid's scores (each seed's mean over the last 10%)" in text
+    start = f"| (a) {CLAIMS['a']} (CMAT) |"
+    row = next(line for line in text.splitlines() if line.startswith(start))
+    assert row.endswith(f"| {NOT_SEPARABLE} |") and f"| {SUPPORTED} | CMAT vs MAT" in row
+    data.pop("claims_from_finals")
+    assert "verdict from last evaluations" not in "\n".join(claims_section(data, "x"))

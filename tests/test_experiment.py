@@ -3,6 +3,7 @@ run directories redone, unavailable environments skipped, bad specs rejected, st
 
 from __future__ import annotations
 
+import csv
 import fcntl
 import json
 import os
@@ -211,6 +212,40 @@ def test_report_only_reports_the_runs_on_disk_and_starts_none(
     assert "--report-only: no experiment directory" in one_error_line(capsys.readouterr().err)
 
 
+def test_a_score_window_reports_mean_evaluations_and_the_verdicts_from_last_ones(
+    grid: tuple[Path, bytes, str], tmp_path: Path
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    spec = yaml.safe_load(SMOKE.read_text())
+    spec["score_window"] = 0.6
+    path = tmp_path / "window.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    before = {run: (out / run / "metrics.csv").read_bytes() for run in (CMAT_RUN, MAT_RUN)}
+    assert main(["experiment", str(path), "--out", str(out), "--report-only"]) == 0
+    summary = json.loads((out / "results.json").read_text())
+    lines = summary["tasks"][0]["lines"]
+    for run, label in ((CMAT_RUN, "CMAT"), (MAT_RUN, "MAT")):
+        assert (out / run / "metrics.csv").read_bytes() == before[run]
+        evaluations: dict[str, list[tuple[int, float]]] = {}
+        with (out / run / "metrics.csv").open() as file:
+            for row in csv.DictReader(file):
+                if row["kind"] == "eval":
+                    evaluations.setdefault(row["seed"], []).append(
+                        (int(row["env_steps"]), float(row["episode_return"])))
+        window = [np.mean([v for steps, v in rows if steps >= 0.4 * max(s for s, _ in rows)])
+                  for _, rows in sorted(evaluations.items())]
+        last = [max(rows)[1] for _, rows in sorted(evaluations.items())]
+        assert len(window) == 2 and any(len(rows) > 1 for rows in evaluations.values())
+        np.testing.assert_allclose(lines[label]["scores"], window)
+        np.testing.assert_allclose(lines[label]["finals"], last)
+        assert lines[label]["mean"] == pytest.approx(np.mean(window))
+    table = (out / "results.md").read_text()
+    assert "mean greedy evaluation over the last 60% of its env steps" in table
+    assert "verdict from last evaluations |" in table
+    assert [c["statement"] for c in summary["claims_from_finals"]] == [
+        c["statement"] for c in summary["claims"]]
+
+
 def test_an_export_keeps_results_not_checkpoints_and_continues_the_grid_elsewhere(
     grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -408,6 +443,10 @@ SPEC = {"steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"]}
         ({"variants": {"a": {"from": "b", "finetune": "action"},
                        "b": {"from": "a", "finetune": "consensus"}}}, "form a cycle"),
         ({"variants": {"a": {"figure": "fig3"}}}, "figure must be one or a list of"),
+        ({"score_window": 1}, "score_window must be a number in [0, 1), got 1"),
+        ({"score_window": -0.2}, "score_window must be a number in [0, 1), got -0.2"),
+        ({"score_window": "last 10"}, "score_window must be a number in [0, 1), got 'last 10'"),
+        ({"score_window": float("nan")}, "score_window must be a number in [0, 1), got nan"),
         ({"variants": {"a": {"envs": ["matrix:penalty"]}}},
          "variants.a: envs names 'matrix:penalty', which is not one of the spec's envs"),
         ({"envs": ["matrix:fig1", "matrix:penalty"],
@@ -607,6 +646,37 @@ def test_published_suite_means_are_listed_for_a_suites_tasks_and_drawn_only_on_i
         20_000_000}
     assert drawn_suite_aggregates(rows, "jumanji:lbf-x", "win_rate", 700_000) == []
     assert drawn_suite_aggregates(rows, "jumanji:rware-x", "episode_return", 700_000) == []
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_seeds_score_is_its_mean_evaluation_over_the_last_part_of_its_steps(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    window = float(rng.uniform(0.05, 0.95))
+    rows: list[dict[str, str]] = []
+    expected_last, expected_window = [], []
+    for run_seed in rng.permutation(4):
+        count, interval = int(rng.integers(1, 15)), int(rng.integers(1, 5)) * 1000
+        steps = interval * np.arange(1, count + 1)
+        values = rng.random(count)
+        if run_seed == 2:  # a NaN before the window is harmless, one inside drops the seed
+            values[0] = np.nan
+        inside = steps >= (1 - window) * steps[-1]
+        if not np.isnan(values[inside]).any():
+            expected_window.append((run_seed, values[inside].mean()))
+        if not np.isnan(values[-1]):
+            expected_last.append((run_seed, values[-1]))
+        for step, value in zip(steps, values, strict=True):
+            common = {"seed": str(run_seed), "env_steps": str(step)}
+            rows.append({**common, "kind": "eval", "win_rate": repr(float(value))})
+            rows.append({**common, "kind": "train", "win_rate": "1.0"})
+        rows.append({"seed": str(run_seed), "env_steps": str(steps[-1] * 2), "kind": "eval",
+                     "win_rate": ""})
+    rows = [rows[i] for i in rng.permutation(len(rows))]
+    line = Line("X", "default", "cmat", ("main",), [], rows)
+    np.testing.assert_allclose(line.scores("win_rate"), [v for _, v in sorted(expected_last)])
+    np.testing.assert_allclose(line.scores("win_rate", window),
+                               [v for _, v in sorted(expected_window)])
+    assert line.scores("episode_return", window) == []
 
 
 def test_statistics_equal_rliables() -> None:

@@ -1,4 +1,4 @@
-"""The paper's claims judged from an experiment's final scores: a verdict per claim, computed.
+"""The paper's claims judged from an experiment's scores: a verdict per claim, computed.
 
 The claims (paper, Introduction and Experiments):
 
@@ -17,7 +17,9 @@ reference's. (d): the reference (m = n) against each CMAT line with another m an
 reference's consensus source. (e): CMAT against MAT on the matrix games (`matrix:` ids);
 (a)-(d) use the other tasks.
 
-Evidence for "X beats Y": rliable's probability of improvement P(X > Y) with a stratified
+Scores: each seed's score (`cmat.experiments.lines.Line.scores`: its last greedy evaluation, or
+its mean evaluation over the spec's `score_window`). Evidence for "X beats Y": rliable's
+probability of improvement P(X > Y) with a stratified
 bootstrap 95% percentile interval, on each task (seeds resampled) and aggregated over the tasks
 both lines ran (scores normalised as in `cmat.experiments.statistics.normalise`), beside the IQM
 of each line over those tasks. A comparison is decided when its interval excludes 0.5: X
@@ -28,7 +30,7 @@ below it. Verdicts, from the per-task comparisons:
   is reliably better on any task, and m = n is reliably better than some other m on some task);
 - "not supported": some comparison finds Y reliably better (for (d): some other m);
 - "not separable at this budget": neither (at least one interval contains 0.5);
-- "no data": no task on which the claim's lines both have final scores.
+- "no data": no task on which the claim's lines both have scores.
 
 A verdict reached on fewer tasks than the claim covers in the spec says on how many.
 """
@@ -69,7 +71,7 @@ class TaskComparison:
 
 @dataclass(frozen=True)
 class Comparison:
-    """X against Y on the tasks where both have final scores."""
+    """X against Y on the tasks where both have scores."""
 
     x: str
     y: str
@@ -106,7 +108,7 @@ def outcome(ci: list[float]) -> str:
 def compare(x: str, y: str, scores: dict[str, dict[str, list[float]]], reps: int) -> (
         Comparison | None):
     """P(x > y) per task and aggregated over the tasks of `scores` (task -> label ->
-    normalised finals) where both have finals; None where there is no such task."""
+    normalised scores) where both have scores; None where there is no such task."""
     tasks = [t for t, lines in scores.items() if lines.get(x) and lines.get(y)]
     if not tasks:
         return None
@@ -143,24 +145,28 @@ def verdict(comparisons: list[Comparison], robust_default: bool = False) -> str:
     return SUPPORTED if all(o == "x" for o in outcomes) else NOT_SEPARABLE
 
 
-def judge_claims(summary: dict[str, Any], spec: ExperimentSpec) -> list[dict[str, Any]]:
+def judge_claims(
+    summary: dict[str, Any], spec: ExperimentSpec, scores: str = "scores"
+) -> list[dict[str, Any]]:
     """The claims (a)-(e) judged from `summary` (`cmat.experiments.report.summarise`): per claim
-    its statement, comparisons, the number of the spec's tasks it covers and its verdict."""
-    finals: dict[str, dict[str, list[float]]] = {}
+    its statement, comparisons, the number of the spec's tasks it covers and its verdict.
+    `scores` names the per-seed values of each line that are compared: "scores" (the spec's
+    score window) or "finals" (each seed's last evaluation)."""
+    by_task: dict[str, dict[str, list[float]]] = {}
     lines: dict[str, dict[str, Any]] = {}
     # m of each line on each of its tasks: m = n resolves to a different count per task.
     iterations: dict[str, dict[str, Any]] = {}
     for task in summary["tasks"]:
         if "unavailable" in task:
             continue
-        task_finals = {label: line["finals"] for label, line in task["lines"].items()
-                       if line["finals"]}
-        finals[task["env"]] = normalise(task_finals, task["metric"]) if task_finals else {}
+        task_scores = {label: line[scores] for label, line in task["lines"].items()
+                       if line[scores]}
+        by_task[task["env"]] = normalise(task_scores, task["metric"]) if task_scores else {}
         for label, line in task["lines"].items():
             lines.setdefault(label, line)
             iterations.setdefault(label, {})[task["env"]] = line.get("iterations")
-    game = {t: s for t, s in finals.items() if t.startswith("matrix:")}
-    benchmark = {t: s for t, s in finals.items() if not t.startswith("matrix:")}
+    game = {t: s for t, s in by_task.items() if t.startswith("matrix:")}
+    benchmark = {t: s for t, s in by_task.items() if not t.startswith("matrix:")}
     spec_tasks = [e.id for e in spec.envs if e.unavailable is None]
     reps = spec.bootstrap_reps
 

@@ -2,7 +2,8 @@
 each task, and the published reference figures that go beside them.
 
 The metric of a task is the win rate where its environment defines one, else the episode
-return. A line's final score is each seed's last greedy evaluation.
+return. A seed's score is its last greedy evaluation, or the mean of its evaluations over the
+last part of its budget (`Line.scores`, the spec's `score_window`).
 """
 
 from __future__ import annotations
@@ -36,17 +37,25 @@ class Line:
     def curve(self, metric: str) -> Curve | None:
         return eval_curve(self.rows, metric)
 
-    def finals(self, metric: str) -> list[float]:
-        """Each seed's last evaluation of `metric` (seeds without one are left out)."""
-        last: dict[str, tuple[int, float]] = {}
+    def scores(self, metric: str, window: float = 0.0) -> list[float]:
+        """Each seed's score on `metric`, in seed order: the mean of its greedy evaluations at
+        env steps >= (1 - `window`) × its last evaluation's, so `window` = 0 gives the last
+        evaluation alone. With E episodes per evaluation, the mean of k evaluations is the
+        win rate (or mean return) over their k × E episodes. Seeds without an evaluation of
+        `metric`, or with a NaN in the window, are left out."""
+        evaluations: dict[int, list[tuple[int, float]]] = {}
         for row in self.rows:
-            if row["kind"] != "eval" or row.get(metric, "") == "":
-                continue
-            steps = int(row["env_steps"])
-            if row["seed"] not in last or steps >= last[row["seed"]][0]:
-                last[row["seed"]] = (steps, float(row[metric]))
-        return [value for _, value in sorted(last.values(), key=lambda item: item[0]) if
-                not math.isnan(value)]
+            if row["kind"] == "eval" and row.get(metric, "") != "":
+                evaluations.setdefault(int(row["seed"]), []).append(
+                    (int(row["env_steps"]), float(row[metric])))
+        scores = []
+        for seed in sorted(evaluations):
+            last = max(steps for steps, _ in evaluations[seed])
+            window_values = [value for steps, value in evaluations[seed]
+                             if steps >= (1 - window) * last]
+            if not any(math.isnan(value) for value in window_values):
+                scores.append(sum(window_values) / len(window_values))
+        return scores
 
     @property
     def iterations(self) -> int | None:

@@ -11,12 +11,12 @@ from cmat.experiments.plan import Plan
 
 def markdown(plan: Plan, summary: dict[str, Any]) -> str:
     out = [f"# Experiment `{plan.spec.name}`", "",
-           (f"Spec: `spec.yaml` (from `{plan.spec.path}`). Final greedy metric: each seed's last "
-            f"greedy evaluation, mean ± std over seeds (n = {plan.spec.seeds} unless marked). "
-            f"Metric: win rate where the environment defines one, else episode return."), ""]
+           (f"Spec: `spec.yaml` (from `{plan.spec.path}`). Score: {score_text(plan)}, mean ± "
+            f"std over seeds (n = {plan.spec.seeds} unless marked). Metric: win rate where the "
+            f"environment defines one, else episode return."), ""]
     main = labels_of(summary, "main")
     if main:
-        out += ["## Final greedy metrics", "",
+        out += ["## Scores", "",
                 "| task | metric | steps | " + " | ".join(main) + " |",
                 "|---" * (3 + len(main)) + "|"]
     for task in summary["tasks"] if main else []:
@@ -36,7 +36,7 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
                    f"(its curve counts its own steps).")
     ablation = labels_of(summary, "ablation")
     if ablation:
-        out += ["", "## Ablation", "", "| task | variant | m | consensus | final |",
+        out += ["", "## Ablation", "", "| task | variant | m | consensus | score |",
                 "|---|---|---|---|---|"]
         for task in summary["tasks"]:
             for label, line in task["lines"].items():
@@ -46,11 +46,11 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
     out += ["", "## Aggregate statistics", ""]
     agg = summary["aggregate"]
     if agg is None:
-        out.append("Not computed: it needs two or more main lines with final scores on a "
+        out.append("Not computed: it needs two or more main lines with scores on a "
                    "common task.")
     else:
         out += [(f"Lines of the variants that run on every task, over {len(agg['tasks'])} "
-                 f"task(s) ({', '.join(agg['tasks'])}) where each of them has final scores; "
+                 f"task(s) ({', '.join(agg['tasks'])}) where each of them has scores; "
                  f"win rates as they are, returns min-max normalised per "
                  f"task; stratified bootstrap over seeds within tasks, {agg['reps']} "
                  f"replications, 95% percentile intervals (rliable's IQM and probability of "
@@ -64,7 +64,7 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
         for pair, value in agg["improvement"].items():
             out.append(f"| {pair} | {value['probability']:.3f} "
                        f"[{value['ci'][0]:.3f}, {value['ci'][1]:.3f}] |")
-    out += claims_section(summary)
+    out += claims_section(summary, score_text(plan))
     published = [(task, ref) for task in summary["tasks"] for ref in task["published"]]
     out += ["", "## Published reference figures (context, not this project's runs)", ""]
     if published:
@@ -119,18 +119,29 @@ def labels_of(summary: dict[str, Any], figure: str) -> list[str]:
 def cell(line: dict[str, Any] | None, seeds: int) -> str:
     if line is None or line["mean"] is None:
         return "—"
-    n = len(line["finals"])
+    n = len(line["scores"])
     return f"{line['mean']:.3g} ± {line['std']:.2g}" + ("" if n == seeds else f" (n={n})")
 
 
-def claims_section(summary: dict[str, Any]) -> list[str]:
-    """The claims table (one row per claim) and the per-task comparisons behind it."""
+def score_text(plan: Plan) -> str:
+    window = plan.spec.score_window
+    if window == 0:
+        return "each seed's last greedy evaluation"
+    return (f"each seed's mean greedy evaluation over the last {window:.0%} of its env steps "
+            f"(`score_window`; its last evaluation included)")
+
+
+def claims_section(summary: dict[str, Any], score: str) -> list[str]:
+    """The claims table (one row per claim; with a score window, also the verdict from the
+    last evaluations alone) and the per-task comparisons behind it."""
     claims = summary.get("claims") or []
     if not claims:
         return []
+    from_finals = {claim["statement"]: claim for claim in summary.get("claims_from_finals", [])}
     labels = {task["env"]: task["label"] for task in summary["tasks"]}
     out = ["", "## The paper's claims", "",
-           (f"Each claim is judged from this grid's final scores by cmat.experiments.claims: "
+           (f"Each claim is judged from this grid's scores ({score}) by "
+            f"cmat.experiments.claims: "
             f"P(X > Y) is rliable's probability of improvement with a stratified bootstrap 95% "
             f"interval, per task and aggregated over the tasks both lines ran (returns min-max "
             f"normalised per task). A comparison is decided when its interval excludes "
@@ -138,18 +149,26 @@ def claims_section(summary: dict[str, Any]) -> list[str]:
             f"needs (for (d): no other m reliably better anywhere, and m = n reliably better "
             f"than some other m somewhere). Not supported: the other line reliably better in "
             f"some comparison. Not separable at this budget: otherwise. Fine-tuning stages ran "
-            f"their own steps after their base run. Tasks with `matrix:` ids are claim (e)'s."),
+            f"their own steps after their base run. Tasks with `matrix:` ids are claim (e)'s."
+            + (" The last column judges each claim the same way from each seed's last greedy "
+               "evaluation alone, to show how much the verdict owes to the score's definition."
+               if from_finals else "")),
            "", "| claim | verdict | evidence: X vs Y, aggregate P(X > Y) [95% CI], IQM of X and "
-               "Y (normalised scores), tasks where X / Y was reliably better / neither |",
-           "|---|---|---|"]
+               "Y (normalised scores), tasks where X / Y was reliably better / neither |"
+           + (" verdict from last evaluations |" if from_finals else ""),
+           "|---|---|---|" + ("---|" if from_finals else "")]
     for claim in claims:
         evidence = "; ".join(
             f"{c['x']} vs {c['y']}: {c['probability']:.2f} [{c['ci'][0]:.2f}, {c['ci'][1]:.2f}]"
             f", IQM {c['iqm_x']:.2f} vs {c['iqm_y']:.2f}, "
             f"{tally(c)} of {len(c['tasks'])} task(s)"
             for c in claim["comparisons"]) or "the grid has no complete runs of these lines"
-        out.append(f"| ({claim['key']}) {claim['statement']} | "
-                   f"{claim['verdict']}{coverage(claim)} | {evidence} |")
+        row = (f"| ({claim['key']}) {claim['statement']} | "
+               f"{claim['verdict']}{coverage(claim)} | {evidence} |")
+        if from_finals:
+            last = from_finals.get(claim["statement"])
+            row += f" {last['verdict'] + coverage(last) if last else NO_DATA} |"
+        out.append(row)
     rows = [(claim, c, t) for claim in claims for c in claim["comparisons"]
             for t in c["per_task"]]
     if rows:

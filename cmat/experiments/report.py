@@ -4,9 +4,11 @@
   `main`: greedy evaluation metric against env steps, mean ± std over seeds shaded; published
   reference figures for the task as dashed horizontal lines labelled "published".
 - `figure_ablation.png` (paper Fig. 4), when the spec has variants of figure `ablation`.
-- `results.md`: final greedy metrics (mean ± std over seeds), the ablation table with each
-  run's resolved m, aggregate statistics with bootstrap confidence intervals, the published
-  figures, the paper's claims judged from the grid (cmat.experiments.claims), and what
+- `results.md`: each line's score, mean ± std over seeds (a seed's score is its last greedy
+  evaluation, or its mean evaluation over the spec's `score_window`: `Line.scores`), the
+  ablation table with each run's resolved m, aggregate statistics with bootstrap confidence
+  intervals, the published figures, the paper's claims judged from the scores
+  (cmat.experiments.claims; with a window, also from the last evaluations alone) and what
   happened to every run; `results.json`: the same numbers;
   `marl_eval.json`: every evaluation of every run in marl-eval's format.
 """
@@ -76,12 +78,13 @@ def summarise(
         if env.id in plan.unavailable:
             entry["unavailable"] = plan.unavailable[env.id]
         for line in lines.get(env.id, []):
-            finals = line.finals(metric)
+            scores = line.scores(metric, plan.spec.score_window)
             entry["lines"][line.label] = {
                 "variant": line.variant, "algo": line.algo, "figures": list(line.figures),
-                "finals": finals,
-                "mean": float(np.mean(finals)) if finals else None,
-                "std": float(np.std(finals)) if finals else None,
+                "scores": scores,
+                "finals": line.scores(metric),
+                "mean": float(np.mean(scores)) if scores else None,
+                "std": float(np.std(scores)) if scores else None,
                 "steps": line.runs[0].config.total_steps if line.runs[0].config else None,
                 "iterations": line.iterations,
                 "consensus_source": (line.runs[0].config.network.consensus_source
@@ -102,6 +105,8 @@ def summarise(
     }
     summary["compute"] = compute_totals(summary["runs"])
     summary["claims"] = judge_claims(summary, plan.spec)
+    if plan.spec.score_window > 0:
+        summary["claims_from_finals"] = judge_claims(summary, plan.spec, scores="finals")
     return summary
 
 

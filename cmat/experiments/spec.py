@@ -19,6 +19,8 @@ variants:                         # default: {default: {}}
                     label: "CMAT-finetune (action)"}
   tau_one: {algos: [cmat], envs: [matrix:fig1], set: {ppo.target_tau: 1.0}}
 bootstrap_reps: 2000              # bootstrap replications of the aggregate statistics
+score_window: 0.1                 # a seed's score: mean greedy evaluation over its last 10% of
+                                  # env steps (default 0: its last evaluation only)
 ```
 
 A variant with `from` is a fine-tuning stage: it starts from the finished run of variant `from`
@@ -47,7 +49,7 @@ from cmat.errors import CmatError
 
 FIGURES = ("main", "ablation", "none")
 SPEC_KEYS = ("name", "description", "steps", "seeds", "seed", "seeds_per_run", "set", "envs",
-             "algos", "variants", "bootstrap_reps")
+             "algos", "variants", "bootstrap_reps", "score_window")
 ENV_KEYS = ("id", "steps", "set", "label", "unavailable")
 VARIANT_KEYS = ("algos", "envs", "set", "steps", "from", "finetune", "figure", "label")
 ALGO_LABELS = {"cmat": "CMAT", "mat": "MAT", "pmat": "PMAT", "triple_bert": "Triple-BERT",
@@ -107,6 +109,9 @@ class ExperimentSpec:
     seeds_per_run: int
     overrides: tuple[str, ...]
     bootstrap_reps: int
+    score_window: float = 0.0
+    """Fraction of a run's env steps over whose greedy evaluations a seed's score is averaged
+    (`cmat.experiments.lines.Line.scores`); 0: the seed's last evaluation."""
 
     def variant(self, name: str) -> Variant:
         return next(v for v in self.variants if v.name == name)
@@ -165,6 +170,7 @@ def load_spec(path: Path) -> ExperimentSpec:
         seeds_per_run=min(seeds_per_run, seeds),
         overrides=overrides(raw.get("set"), f"{where}: set"),
         bootstrap_reps=positive_int(raw.get("bootstrap_reps", 2000), f"{where}: bootstrap_reps"),
+        score_window=fraction(raw.get("score_window", 0.0), f"{where}: score_window"),
     )
 
 
@@ -318,6 +324,13 @@ def integer(value: Any, where: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
         raise CmatError(f"{where} must be an integer, got {value!r}")
     return int(value)
+
+
+def fraction(value: Any, where: str) -> float:
+    """A number in [0, 1)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < 1:
+        raise CmatError(f"{where} must be a number in [0, 1), got {value!r}")
+    return float(value)
 
 
 def positive_int(value: Any, where: str) -> int:

@@ -4,7 +4,8 @@ bootstrap replications (equal to rliable's functions, tests/test_experiment.py):
 bootstrap resamples seeds within each task, 95% percentile intervals. rliable's own bootstrap
 module is not used: it imports arch < 8, which fails to import under pandas 3. Scores are made
 comparable across tasks as win rates in [0, 1] as they are, returns min-max normalised per task
-over every final score of the compared lines (there are no per-task random/expert scores).
+over every score of the compared lines (there are no per-task random/expert scores). A seed's
+score is `cmat.experiments.lines.Line.scores` with the spec's `score_window`.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ def aggregate(
     lines: dict[str, list[Line]], metrics: dict[str, str], spec: ExperimentSpec
 ) -> dict[str, Any] | None:
     """IQM and mean with CIs per main line of a variant that runs on every environment, and
-    P(first line > each other), over the tasks where every such line has final scores; None
+    P(first line > each other), over the tasks where every such line has scores; None
     when no task has two lines to compare."""
     everywhere = {v.name for v in spec.variants if v.envs is None}
     labels: list[str] = []
@@ -60,10 +61,10 @@ def aggregate(
                 labels.append(line.label)
     per_task: dict[str, dict[str, list[float]]] = {}
     for env_id, task_lines in lines.items():
-        finals = {line.label: line.finals(metrics[env_id])
+        scores = {line.label: line.scores(metrics[env_id], spec.score_window)
                   for line in task_lines if line.label in labels}
-        if all(finals.get(label) for label in labels):
-            per_task[env_id] = finals
+        if all(scores.get(label) for label in labels):
+            per_task[env_id] = scores
     if not per_task or len(labels) < 2:
         return None
     tasks = list(per_task)
@@ -91,12 +92,12 @@ def aggregate(
     return result
 
 
-def normalise(finals: dict[str, list[float]], metric: str) -> dict[str, list[float]]:
-    """Win rates as they are; returns min-max scaled over every final score of the task."""
+def normalise(scores: dict[str, list[float]], metric: str) -> dict[str, list[float]]:
+    """Win rates as they are; returns min-max scaled over every score of the task."""
     if metric == "win_rate":
-        return finals
-    values = [v for scores in finals.values() for v in scores]
+        return scores
+    values = [v for line_scores in scores.values() for v in line_scores]
     low, high = min(values), max(values)
     scale = high - low
-    return {label: [0.5 if scale == 0 else (v - low) / scale for v in scores]
-            for label, scores in finals.items()}
+    return {label: [0.5 if scale == 0 else (v - low) / scale for v in line_scores]
+            for label, line_scores in scores.items()}
