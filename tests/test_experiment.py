@@ -25,6 +25,7 @@ from cmat.cli import main
 from cmat.errors import CmatError
 from cmat.experiments import execute
 from cmat.experiments.claims import CLAIMS, NO_DATA
+from cmat.experiments.figures import panel_envs
 from cmat.experiments.lines import (
     Line,
     drawn_suite_aggregates,
@@ -605,6 +606,32 @@ def test_a_variant_restricted_to_some_envs_plans_and_aggregates_only_there(
     assert list(result["lines"]) == ["CMAT", "MAT"]
     assert result["lines"]["CMAT"]["mean"] == pytest.approx(0.75)
     assert result["lines"]["MAT"]["mean"] == pytest.approx(0.25)
+
+
+def test_a_figure_draws_the_tasks_its_variants_are_compared_on(tmp_path: Path) -> None:
+    path = tmp_path / "panels.yaml"
+    envs = ["matrix:fig1", "matrix:penalty", "matrix:climbing"]
+    path.write_text(yaml.safe_dump({
+        "steps": 100, "envs": envs, "algos": ["cmat", "mat"],
+        "variants": {
+            "default": {"figure": ["main", "ablation"]},
+            "m0": {"algos": ["cmat"], "figure": "ablation", "envs": ["matrix:penalty"],
+                   "set": {"network": {"consensus_iterations": 0}}},
+            "last": {"algos": ["cmat"], "figure": "ablation",
+                     "envs": ["matrix:penalty", "matrix:climbing"],
+                     "set": {"network": {"consensus_source": "last"}}},
+            "mat_only": {"algos": ["mat"], "figure": "ablation", "envs": ["matrix:fig1"]},
+        },
+    }))
+    spec = load_spec(path)
+    assert [env.id for env in panel_envs(spec, "ablation")] == envs[1:]
+    assert [env.id for env in panel_envs(spec, "main")] == envs
+    path.write_text(yaml.safe_dump({
+        "steps": 100, "envs": envs, "algos": ["cmat"],
+        "variants": {"a": {"envs": ["matrix:fig1"]}, "b": {"envs": ["matrix:penalty"]},
+                     "c": {"envs": ["matrix:climbing"]}},
+    }))
+    assert [env.id for env in panel_envs(load_spec(path), "main")] == envs
 
 
 def test_a_spec_names_the_paper_preset_or_the_defaults(tmp_path: Path) -> None:

@@ -21,6 +21,7 @@ from cmat.experiments.lines import (
     suite_aggregate_label,
 )
 from cmat.experiments.plan import Plan
+from cmat.experiments.spec import EnvEntry, ExperimentSpec
 
 
 def draw(
@@ -31,8 +32,9 @@ def draw(
     """A panel per task; `figure_kind` selects the variants drawn (main or ablation). Published
     task figures are dashed grey lines; published suite means on the task's scale
     (lines.drawn_suite_aggregates) are dotted lines in the colour of the same algorithm's line
-    where there is one."""
-    envs = plan.spec.envs
+    where there is one. Where two or more of the figure's variants exist, only the tasks that
+    two of them cover get a panel (an ablation that runs on two maps draws two panels)."""
+    envs = panel_envs(plan.spec, figure_kind)
     columns = min(3, len(envs))
     rows = math.ceil(len(envs) / columns)
     figure = Figure(figsize=(5.2 * columns, 3.9 * rows + 0.9), layout="constrained")
@@ -95,6 +97,16 @@ def draw(
                     fontsize="small")
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=90)
+
+
+def panel_envs(spec: ExperimentSpec, figure_kind: str) -> list[EnvEntry]:
+    """The spec's environments that `figure_kind` compares variants on: covered by two of its
+    variants (for the ablation figure, variants with CMAT), or all of them where the figure has
+    fewer than two variants or no task has two."""
+    variants = [v for v in spec.variants if figure_kind in v.figures
+                and (figure_kind == "main" or "cmat" in v.algos)]
+    compared = [env for env in spec.envs if sum(v.covers(env.id) for v in variants) >= 2]
+    return compared or list(spec.envs)
 
 
 def wrap(text: str, width: int) -> str:
