@@ -124,10 +124,11 @@ def cell(line: dict[str, Any] | None, seeds: int) -> str:
 
 
 def score_text(plan: Plan) -> str:
+    """How a seed's score is made (cmat.experiments.lines.Line.scores), in words."""
     window = plan.spec.score_window
     if window == 0:
         return "each seed's last greedy evaluation"
-    return (f"each seed's mean greedy evaluation over the last {window:.0%} of its env steps "
+    return (f"each seed's mean greedy evaluation over the last {window * 100:g}% of its env steps "
             f"(`score_window`; its last evaluation included)")
 
 
