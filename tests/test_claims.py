@@ -189,3 +189,16 @@ def test_claims_are_judged_from_the_scores_named_and_both_verdicts_are_shown(
     assert row.endswith(f"| {NOT_SEPARABLE} |") and f"| {SUPPORTED} | CMAT vs MAT" in row
     data.pop("claims_from_finals")
     assert "verdict from last evaluations" not in "\n".join(claims_section(data, "x"))
+
+
+def test_a_claim_says_how_many_of_its_per_task_comparisons_are_still_missing(
+    spec: ExperimentSpec,
+) -> None:
+    assert {coverage(claim) for claim in judge_claims(summary(full_grid()), spec)} == {""}
+    grid = full_grid()
+    for label in ("MAT", "m = n/2"):
+        del grid["smax:2s3z"][label]
+    claims = by_key(judge_claims(summary(grid), spec))
+    assert coverage(claims["CMAT"]) == " (3 of 4 per-task comparisons)"
+    assert coverage(claims["d"]) == " (on 1 of 2 tasks)"
+    assert coverage(claims["c"]) == "" and coverage(claims["e"]) == ""
