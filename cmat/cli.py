@@ -29,6 +29,7 @@ from cmat.config import (
     to_yaml,
     validate,
 )
+from cmat.envs import probe_env
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import resolve_config
@@ -207,6 +208,7 @@ def config_command(args: argparse.Namespace) -> None:
                 (("algo", args.algo), ("env", args.env), ("preset", args.preset))
                 if value is not None]
     config, sources = resolve_config(None, [*args.set, *explicit])
+    _, unavailable = probe_env(config.env, config.env_kwargs)
     docs = field_docs()
     flat = {**{k: v for k, v in asdict(config).items() if k not in NESTED_FIELDS},
             **{f"{section}.{k}": v for section in NESTED_FIELDS
@@ -219,6 +221,8 @@ def config_command(args: argparse.Namespace) -> None:
         if docs.get(name):
             print(textwrap.fill(docs[name], width=96, initial_indent="    ",
                                 subsequent_indent="    "))
+    if unavailable is not None:
+        print(f"# {config.env} cannot be built on this machine: {unavailable}")
 
 
 def train_command(args: argparse.Namespace) -> None:

@@ -13,6 +13,26 @@ from cmat.rundir import RunDir
 
 Curve = tuple[np.ndarray, np.ndarray, np.ndarray]
 
+FEW_POINTS = 12
+"""Curves of at most this many points get a marker on each (a single point draws no line)."""
+
+
+def marker(steps: np.ndarray) -> str | None:
+    return "o" if len(steps) <= FEW_POINTS else None
+
+
+def check_figure_path(out: Path) -> None:
+    """CmatError unless matplotlib writes the format `out`'s suffix names and `out` is not a
+    directory; checked before any run is read."""
+    formats = Figure().canvas.get_supported_filetypes()
+    suffix = Path(out).suffix.lower().removeprefix(".")
+    if suffix not in formats:
+        raise CmatError(f"cannot write a figure to {out}: "
+                        f"{'unknown format ' + repr(suffix) if suffix else 'no file suffix'}; "
+                        f"use one of {', '.join('.' + name for name in sorted(formats))}")
+    if Path(out).is_dir():
+        raise CmatError(f"cannot write a figure to {out}: it is a directory")
+
 
 def eval_curve(rows: list[dict[str, str]], column: str, kind: str = "eval") -> Curve | None:
     """(env_steps, mean, std) over seeds of a column of the `kind` rows (eval or train); None
@@ -42,7 +62,11 @@ def run_names(run_dirs: list[Path]) -> list[str]:
 
 
 def plot_runs(run_dirs: list[Path], out: Path) -> None:
-    """Eval episode return (and win rate, where any run defines it) against env steps per seed."""
+    """Eval episode return (and win rate, where any run defines it) against env steps per seed.
+
+    Raises CmatError for an unwritable `out` (`check_figure_path`) or a run without
+    evaluations."""
+    check_figure_path(out)
     panels: dict[str, list[tuple[str, Curve]]] = {"episode_return": [], "win_rate": []}
     for path, name in zip(run_dirs, run_names(run_dirs)):
         run = RunDir.open(path)
@@ -60,7 +84,7 @@ def plot_runs(run_dirs: list[Path], out: Path) -> None:
     all_axes = figure.subplots(1, len(shown), squeeze=False)[0]
     for axes, (name, curves) in zip(all_axes, shown.items()):
         for label, (steps, mean, std) in curves:
-            (line,) = axes.plot(steps, mean, label=label)
+            (line,) = axes.plot(steps, mean, label=label, marker=marker(steps), markersize=3)
             axes.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
         axes.set_xlabel("env steps per seed")
         axes.set_ylabel(f"eval {name.replace('_', ' ')}")
@@ -92,7 +116,9 @@ def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
     One colour per run (legend under the figure); within a panel, up to four columns are told
     apart by line style (panel legend). Panels with more columns than that (one per agent or
     per block) name each column only when a single run is drawn; with several, their lines
-    share the run's colour."""
+    share the run's colour. Raises CmatError for an unwritable `out` (`check_figure_path`) or
+    runs without diagnostics."""
+    check_figure_path(out)
     runs = []
     for path, name in zip(run_dirs, run_names(run_dirs)):
         run = RunDir.open(path)
@@ -115,7 +141,8 @@ def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
                 style = LINE_STYLES[names.index(column)] if styled else "-"
                 tag = column if styled or len(runs) == 1 else None
                 axes.plot(steps, mean, linestyle=style, color=colour if len(runs) > 1 else None,
-                          linewidth=1.5 if styled else 0.8, label=tag)
+                          linewidth=1.5 if styled else 0.8, label=tag, marker=marker(steps),
+                          markersize=3)
                 axes.fill_between(steps, mean - std, mean + std, color=axes.lines[-1].get_color(),
                                   alpha=0.15 if styled else 0.05)
                 drawn += 1

@@ -8,6 +8,7 @@ of the layers (and the checks that depend on the algorithm) come from the algori
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from cmat.algorithms import algorithm_names, algorithm_presets, check_config, reference_defaults
 from cmat.config import (
+    NESTED_FIELDS,
     ConfigSources,
     TrainConfig,
     field_names,
@@ -73,13 +75,43 @@ def resolve_config(
     except yaml.YAMLError as error:
         raise CmatError(f"config file {yaml_file} is not valid YAML: {one_line(error)}") from None
     except OmegaConfBaseException as error:
-        raise CmatError(f"invalid config: {one_line(error)}") from None
+        raise CmatError(f"invalid config: {config_error(error)}") from None
     assert isinstance(config, TrainConfig)
     sources = dict.fromkeys(field_names(), "default")
     sources.update(base_sources or {})
     for label, layer in layers:
         sources.update(dict.fromkeys(layer_fields(OmegaConf.to_container(layer)), label))
     return check_config(validate(config)), sources
+
+
+TYPE_NAMES = {"Integer": "an integer", "Float": "a number", "Boolean": "true or false",
+              "String": "text"}
+
+SECTIONS = {type(getattr(TrainConfig(), name)).__name__: name for name in NESTED_FIELDS}
+"""Config class name -> its section's key (`PPOConfig` -> `ppo`)."""
+
+
+def config_error(error: OmegaConfBaseException) -> str:
+    """OmegaConf's message, worded for the user and naming the key: `ppo.epochs: expected an
+    integer, got 'abc'`; `unknown key ppo.epoch. Did you mean: 'epochs'?`; `network: a section
+    (set its keys as network.KEY=VALUE), got 5`."""
+    message = one_line(error)
+    key = getattr(error, "full_key", None)
+    converted = (re.fullmatch(r"Value '(.*)' of type '\w+' could not be converted to (\w+)",
+                              message)
+                 or re.fullmatch(r"Value '(.*)' is not a valid (bool) \(type \w+\)", message))
+    if key and converted is not None:
+        expected = TYPE_NAMES.get(converted[2], TYPE_NAMES["Boolean"] if converted[2] == "bool"
+                                  else converted[2].lower())
+        return f"{key}: expected {expected}, got {converted[1]!r}"
+    unknown = re.fullmatch(r"Key '\w+' not in '\w+'\.?(.*)", message)
+    if key and unknown is not None:
+        return f"unknown key {key}.{unknown[1]}".rstrip(".")
+    section = re.fullmatch(r"Merge error: \w+ is not a subclass of (\w+)\. value: (.*)", message)
+    if section is not None and section[1] in SECTIONS:
+        name = SECTIONS[section[1]]
+        return f"{name}: a section (set its keys as {name}.KEY=VALUE), got {section[2]}"
+    return f"{key}: {message}" if key else message
 
 
 def named_layers(env: str, algo: str, preset: str | None) -> list[tuple[str, Any]]:

@@ -153,7 +153,18 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
     [
         (["--env", "nope:x"], "unknown environment prefix 'nope'"),
         (["--env", "smax:nope"], "unknown SMAX scenario 'nope'"),
-        (["--env", "matrix:fig1", "--set", "network.foo=1"], "Key 'foo' not in 'NetworkConfig'"),
+        (["--env", "matrix:fig1", "--set", "network.foo=1"],
+         "invalid config: unknown key network.foo"),
+        (["--env", "matrix:fig1", "--set", "ppo.epochs=abc"],
+         "invalid config: ppo.epochs: expected an integer, got 'abc'"),
+        (["--env", "matrix:fig1", "--set", "ppo.lr=2.5.1"],
+         "invalid config: ppo.lr: expected a number, got '2.5.1'"),
+        (["--env", "matrix:fig1", "--set", "ppo.value_norm=sometimes"],
+         "invalid config: ppo.value_norm: expected true or false, got 'sometimes'"),
+        (["--env", "matrix:fig1", "--set", "network=64"],
+         "invalid config: network: a section (set its keys as network.KEY=VALUE), got 64"),
+        (["--env", "matrix:fig1", "--set", "ppo.epoch=3"],
+         "invalid config: unknown key ppo.epoch. Did you mean: 'epochs'?"),
         (["--env", "matrix:fig1", "--set", "network.consensus_iterations=-1"],
          "consensus_iterations (m) must be >= 0, got -1"),
         (["--env", "matrix:fig1", "--set", "network.n_embd=10", "network.n_head=3"],
@@ -179,6 +190,11 @@ def test_bad_yaml_is_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixtur
     config.write_text("ppo: [unclosed\n")
     assert main(["train", "--config", str(config), "--out", str(tmp_path / "out")]) == 2
     assert "is not valid YAML" in one_error_line(capsys.readouterr().err)
+    config.write_text("ppo:\n  epochs: abc\n")
+    assert main(["train", "--config", str(config), "--out", str(tmp_path / "out")]) == 2
+    assert ("invalid config: ppo.epochs: expected an integer, got 'abc'"
+            in one_error_line(capsys.readouterr().err))
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("argv", [[], ["fly"], ["train", "--steps", "many"], ["plot", "x"]])

@@ -22,7 +22,8 @@ from rliable import metrics as rliable_metrics
 
 from cmat.algorithms import algorithm_names
 from cmat.cli import main
-from cmat.errors import CmatError
+from cmat.envs.host import grf
+from cmat.errors import CmatError, SuiteUnavailable
 from cmat.experiments import execute
 from cmat.experiments.claims import CLAIMS, NO_DATA
 from cmat.experiments.figures import panel_envs
@@ -392,16 +393,23 @@ def test_plan_changes_are_detected_without_running(
 
 
 def test_unavailable_environments_are_reported_and_skipped(
-    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    def missing_suite() -> None:
+        raise SuiteUnavailable("GRF needs gfootball (No module named 'gfootball')")
+
+    monkeypatch.setattr(grf, "import_gfootball", missing_suite)
     out = copy_grid(grid, tmp_path)
     spec = yaml.safe_load(SMOKE.read_text())
-    spec["envs"] += ["nope:x", {"id": "smax:3m", "unavailable": "left out on purpose"}]
+    spec["envs"] += ["grf:academy_3_vs_1_with_keeper",
+                     {"id": "smax:3m", "unavailable": "left out on purpose"}]
     path = tmp_path / "more.yaml"
     path.write_text(yaml.safe_dump(spec))
     assert main(["experiment", str(path), "--out", str(out)]) == 0
     stdout = capsys.readouterr().out
-    assert "skip    nope:x: unavailable: unknown environment prefix 'nope'" in stdout
+    assert ("skip    grf:academy_3_vs_1_with_keeper: unavailable: GRF needs gfootball"
+            in stdout)
     assert "skip    smax:3m: unavailable: marked unavailable in the spec: left out on purpose" \
         in stdout
     assert "[start]" not in stdout
@@ -409,6 +417,31 @@ def test_unavailable_environments_are_reported_and_skipped(
     assert "| smax:3m | — | 1,000 | unavailable: marked unavailable in the spec" in table
     assert "unavailable: marked unavailable in the spec: left out on purpose" in table
     assert (out / "figure_main.png").read_bytes().startswith(b"\x89PNG")
+
+
+@pytest.mark.parametrize(
+    ("env", "message"),
+    [
+        ("nope:x", "unknown environment prefix 'nope'"),
+        ("smax:3s5zz", "unknown SMAX scenario '3s5zz'"),
+        ({"id": "matrix:penalty", "set": ["env_kwargs.k=abc"]}, "malformed payoff"),
+        ({"id": "smax:3m", "set": ["env_kwargs.see_enemy=true"]}, "unknown option 'see_enemy'"),
+    ],
+)
+def test_a_task_that_names_no_environment_is_an_error_not_a_skip(
+    env: str | dict, message: str, grid: tuple[Path, bytes, str], tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    before = {path: path.read_bytes() for path in out.rglob("*") if path.is_file()}
+    spec = yaml.safe_load(SMOKE.read_text())
+    spec["envs"].append(env)
+    path = tmp_path / "typo.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    assert main(["experiment", str(path), "--out", str(out)]) == 2
+    error = one_error_line(capsys.readouterr().err)
+    assert f"{path}: task " in error and message in error
+    assert {path: path.read_bytes() for path in out.rglob("*") if path.is_file()} == before
 
 
 def test_one_experiment_at_a_time(grid: tuple[Path, bytes, str], tmp_path: Path,
@@ -432,7 +465,8 @@ SPEC = {"steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"]}
         ({"envs": ["fig1"]}, "envs[0]: id must look like PREFIX:NAME"),
         ({"steps": 0}, "steps must be > 0, got 0"),
         ({"seeds": "many"}, "seeds must be an integer, got 'many'"),
-        ({"set": ["ppo.nope=1"]}, "matrix:fig1 / default / cmat: invalid config: Key 'nope'"),
+        ({"set": ["ppo.nope=1"]},
+         "matrix:fig1 / default / cmat: invalid config: unknown key ppo.nope"),
         ({"set": {"network": {"consensus_iterations": "3n"}}}, "must be >= 0, got '3n'"),
         ({"variants": {"ft": {"finetune": "action"}}}, "needs both 'from' (a variant) and"),
         ({"variants": {"a": {}, "ft": {"from": "b", "finetune": "action"}}},

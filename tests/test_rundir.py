@@ -6,9 +6,12 @@ import math
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 from matplotlib.image import imread
 
+from cmat import plots
+from cmat.cli import main
 from cmat.config import TrainConfig
 from cmat.errors import CmatError
 from cmat.plots import plot_runs, run_names
@@ -169,6 +172,37 @@ def test_plot_of_a_run_without_evaluations_is_an_error(tmp_path: Path) -> None:
     with pytest.raises(CmatError, match="no evaluation results"):
         plot_runs([run.path], tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()
+
+
+@pytest.mark.parametrize("diagnostics", [[], ["--diagnostics"]])
+@pytest.mark.parametrize(("name", "message"), [
+    ("curve.txt", "unknown format 'txt'"),
+    ("curve.PNGG", "unknown format 'pngg'"),
+    ("curve", "no file suffix"),
+    ("folder.png", "it is a directory"),
+])
+def test_a_figure_path_matplotlib_cannot_write_is_one_error_line_before_any_work(
+    name: str, message: str, diagnostics: list[str], tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    (tmp_path / "folder.png").mkdir()
+    missing_run = tmp_path / "no-such-run"
+    assert main(["plot", str(missing_run), "--out", str(tmp_path / name), *diagnostics]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"cannot write a figure to {tmp_path / name}: {message}" in err[0]
+    assert (".png" in err[0] and ".pdf" in err[0]) or message == "it is a directory"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder.png"]
+
+
+def test_a_curve_of_one_evaluation_is_drawn(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run = RunDir.create(tmp_path / "one", TrainConfig(env="mpe:simple_spread", seeds=2))
+    run.append_metrics(eval_rows([100], 2, win_rate=False))
+    plot_runs([run.path], tmp_path / "marked.png")
+    monkeypatch.setattr(plots, "FEW_POINTS", 0)
+    plot_runs([run.path], tmp_path / "line-only.png")
+    assert not np.array_equal(imread(tmp_path / "marked.png"), imread(tmp_path / "line-only.png"))
 
 
 def test_sessions_append_after_earlier_ones_and_skip_unreadable_lines(tmp_path: Path) -> None:

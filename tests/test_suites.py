@@ -3,6 +3,7 @@ to every later layer (algorithm, preset, file, command line); `cmat train --dry-
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -11,7 +12,10 @@ import yaml
 from cmat.algorithms import reference_defaults
 from cmat.cli import main
 from cmat.config import field_names, from_yaml, layer_fields, read_sources, to_yaml
+from cmat.envs import probe_env
+from cmat.envs.host import grf
 from cmat.envs.suites import SUITES
+from cmat.errors import CmatError, SuiteUnavailable
 from cmat.resolve import load_config, resolve_config
 
 IDS = {
@@ -123,6 +127,49 @@ def test_dry_run_rejects_an_environment_it_cannot_build(
     assert captured.out == ""
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], captured.err
+
+
+@pytest.mark.parametrize("env, options, message", [
+    ("nope:x", {}, "unknown environment prefix 'nope'"),
+    ("smax:3s5zz", {}, "unknown SMAX scenario '3s5zz'"),
+    ("smax:0m", {}, "Nm (N marines a side, 1 <= N <= 999)"),
+    ("smax:1000m", {}, "unknown SMAX scenario '1000m'"),
+    ("matrix:fig2", {}, "unknown matrix game 'fig2'"),
+    ("matrix:penalty", {"payoff": 3}, "unknown option 'payoff'"),
+    ("matrix:fig1", {"payoff": 3}, "payoff"),
+    ("mpe:simple_spreadd", {}, "unknown MPE environment 'simple_spreadd'"),
+    ("mamujoco:Cheetah-2x3", {}, "unknown MaMuJoCo scenario 'Cheetah'"),
+    ("mamujoco:HalfCheetah-7x1", {}, "unknown MaMuJoCo factorization '7x1'"),
+    ("grf:academy_4_vs_1", {}, "unknown GRF scenario 'academy_4_vs_1'"),
+    ("host:x", {}, "unknown environment prefix 'host'"),
+])
+def test_an_environment_wrong_on_any_machine_is_an_error_wherever_it_is_probed(
+    env: str, options: dict, message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(CmatError, match=re.escape(message)):
+        probe_env(env, options)
+    assert main(["config", "--env", env, *[f"--set=env_kwargs.{k}={v}" for k, v in
+                                           options.items()]]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert captured.out == "" and len(lines) == 1 and message in lines[0], captured.err
+
+
+def test_a_known_environment_whose_suite_is_missing_is_unavailable_not_unknown(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def missing_suite() -> None:
+        raise SuiteUnavailable("GRF needs gfootball (No module named 'gfootball')")
+
+    monkeypatch.setattr(grf, "import_gfootball", missing_suite)
+    assert probe_env("grf:academy_3_vs_1_with_keeper", {}) == (
+        None, "GRF needs gfootball (No module named 'gfootball')")
+    assert probe_env("matrix:fig1", {}) == (2, None)
+    assert main(["config", "--env", "grf:academy_3_vs_1_with_keeper"]) == 0
+    out = capsys.readouterr().out
+    assert "ppo.epochs = " in out
+    assert out.splitlines()[-1] == ("# grf:academy_3_vs_1_with_keeper cannot be built on this "
+                                    "machine: GRF needs gfootball (No module named 'gfootball')")
 
 
 def test_dry_run_of_a_resume_prints_the_runs_config_and_trains_nothing(

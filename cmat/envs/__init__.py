@@ -17,10 +17,11 @@ import jax.numpy as jnp
 
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
 from cmat.envs.suites import ENV_PREFIXES, HOST_PREFIXES
-from cmat.errors import CmatError
+from cmat.errors import CmatError, SuiteUnavailable
 
 __all__ = [
     "ENV_PREFIXES", "HOST_PREFIXES", "AgentIdWrapper", "EnvSpec", "MarlEnv", "TimeStep", "make_env",
+    "probe_env",
 ]
 
 
@@ -61,7 +62,8 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
         from cmat.envs import jaxmarl_envs
 
         scenario = (name if jaxmarl_envs.MARINE_TEAM.fullmatch(name)
-                    else _choose("SMAX scenario", name, jaxmarl_envs.SMAX_SCENARIOS))
+                    else _choose("SMAX scenario", name, jaxmarl_envs.SMAX_SCENARIOS,
+                                 also="Nm (N marines a side, 1 <= N <= 999)"))
         factory = partial(jaxmarl_envs.SmaxEnv, scenario)
         options = jaxmarl_envs.SMAX_OPTIONS
     elif prefix == "mpe":
@@ -76,7 +78,7 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
         options = inspect.signature(factory).parameters
     elif prefix == "mabrax":
         if importlib.util.find_spec("brax") is None:
-            raise CmatError(
+            raise SuiteUnavailable(
                 f"{env_id} needs brax, which is not installed: "
                 f"pip install 'cmat[mabrax]' (brax>=0.14.2,<0.15)"
             )
@@ -104,7 +106,35 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
     return AgentIdWrapper(env) if agent_id else env
 
 
-def _choose(kind: str, name: str, available: Iterable[str]) -> str:
+def _choose(kind: str, name: str, available: Iterable[str], also: str = "") -> str:
     if name not in available:
-        raise CmatError(f"unknown {kind} {name!r}; available: {', '.join(available)}")
+        listed = ", ".join([*available, *([also] if also else [])])
+        raise CmatError(f"unknown {kind} {name!r}; available: {listed}")
     return name
+
+
+def probe_env(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int | None, str | None]:
+    """(number of agents, None) where `env_id` builds here (a JAX or a host environment, closed
+    again), or (None, why not) where its suite cannot be built on this machine
+    (`SuiteUnavailable`, or a suite's own import or build failure).
+
+    Raises CmatError for an id, option or option value that is wrong on any machine (an unknown
+    scenario, a typo), so that an experiment stops on it rather than skipping the task."""
+    try:
+        if env_id.partition(":")[0] in HOST_PREFIXES:
+            from cmat.envs.host import make_host_env
+
+            env: Any = make_host_env(env_id, **env_kwargs)
+        else:
+            env = make_env(env_id, **env_kwargs)
+        num_agents = int(env.spec.num_agents)
+        close = getattr(env, "close", None)
+        if callable(close):
+            close()
+        return num_agents, None
+    except SuiteUnavailable as error:
+        return None, str(error)
+    except CmatError:
+        raise
+    except Exception as error:  # a suite's own import or build failure: report, don't crash
+        return None, f"{type(error).__name__}: {error}".splitlines()[0]

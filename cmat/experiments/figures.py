@@ -22,6 +22,7 @@ from cmat.experiments.lines import (
 )
 from cmat.experiments.plan import Plan
 from cmat.experiments.spec import EnvEntry, ExperimentSpec
+from cmat.plots import marker
 
 
 def draw(
@@ -67,7 +68,7 @@ def draw(
             color = colors.setdefault(key, palette[len(colors) % len(palette)])
             steps, mean, std = curve
             (handle,) = axes.plot(steps, mean, color=color, label=label,
-                                  marker="o" if len(steps) <= 12 else None, markersize=3)
+                                  marker=marker(steps), markersize=3)
             axes.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2)
             handles.setdefault(key, handle)
         published = []

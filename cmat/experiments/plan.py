@@ -21,9 +21,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from cmat.config import TrainConfig, resolve_iterations
+from cmat.envs import probe_env
 from cmat.errors import CmatError
 from cmat.experiments.spec import EnvEntry, ExperimentSpec, Variant
 from cmat.resolve import load_config
@@ -102,8 +102,12 @@ def make_plan(spec: ExperimentSpec, out: Path) -> Plan:
         if env.unavailable is not None:
             reason = f"marked unavailable in the spec: {env.unavailable}"
         else:
-            assert env_runs[0].config is not None
-            num_agents, reason = probe_env(env_runs[0].config)
+            config = env_runs[0].config
+            assert config is not None
+            try:
+                num_agents, reason = probe_env(config.env, config.env_kwargs)
+            except CmatError as error:
+                raise CmatError(f"{spec.path}: task {env.id}: {error}") from None
         for run in env_runs:
             run.num_agents = num_agents
             if reason is not None:
@@ -185,31 +189,6 @@ def make_run(
     except CmatError as error:
         raise CmatError(f"{where}: {error}") from None
     return run
-
-
-def probe_env(config: TrainConfig) -> tuple[int | None, str | None]:
-    """(number of agents, None), or (None, why the environment cannot be built here)."""
-    from cmat.envs import make_env
-
-    try:
-        prefix = config.env.partition(":")[0]
-        from cmat.envs import HOST_PREFIXES
-
-        if prefix in HOST_PREFIXES:
-            from cmat.envs.host import make_host_env
-
-            env: Any = make_host_env(config.env, **config.env_kwargs)
-        else:
-            env = make_env(config.env, **config.env_kwargs)
-        num_agents = int(env.spec.num_agents)
-        close = getattr(env, "close", None)
-        if callable(close):
-            close()
-        return num_agents, None
-    except CmatError as error:
-        return None, str(error)
-    except Exception as error:  # a suite's own import or build failure: report, don't crash
-        return None, f"{type(error).__name__}: {error}".splitlines()[0]
 
 
 def inspect(run: Run) -> tuple[str, str]:

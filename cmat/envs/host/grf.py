@@ -19,7 +19,7 @@ import numpy as np
 
 from cmat.envs.host.protocol import AutoReset, simulator_call
 from cmat.envs.protocol import EnvSpec
-from cmat.errors import CmatError
+from cmat.errors import CmatError, SuiteUnavailable
 
 SCENARIOS = {
     "academy_3_vs_1_with_keeper": 3,
@@ -39,7 +39,7 @@ def import_gfootball() -> Any:
     try:
         import gfootball.env as football_env
     except ImportError as error:
-        raise CmatError(
+        raise SuiteUnavailable(
             f"GRF needs gfootball ({error}); build it with scripts/install_grf.sh"
         ) from None
     return football_env

@@ -20,7 +20,7 @@ import warnings
 from typing import Any
 
 from cmat.envs.host.pettingzoo_env import PettingZooEnv
-from cmat.errors import CmatError
+from cmat.errors import CmatError, SuiteUnavailable
 
 BUILT_IN: dict[str, tuple[str, ...]] = {
     "HalfCheetah": ("2x3", "6x1"),
@@ -109,7 +109,7 @@ def import_mamujoco() -> Any:
             warnings.simplefilter("ignore")
             from gymnasium_robotics import mamujoco_v1
     except ImportError as error:
-        raise CmatError(
+        raise SuiteUnavailable(
             f"MaMuJoCo needs gymnasium-robotics and mujoco ({error}); install them with "
             f"pip install -e '.[mujoco]'"
         ) from None

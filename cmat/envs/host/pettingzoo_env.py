@@ -44,7 +44,7 @@ import numpy as np
 
 from cmat.envs.host.protocol import AutoReset, simulator_call
 from cmat.envs.protocol import EnvSpec
-from cmat.errors import CmatError
+from cmat.errors import CmatError, SuiteUnavailable
 
 DEFAULT_MAX_EPISODE_STEPS = 1000
 """Time limit where the env names none (`max_episode_steps`, `max_cycles` or its metadata)."""
@@ -60,7 +60,7 @@ def load_factory(env_id: str, target: str) -> Callable[..., Any]:
     try:
         module = importlib.import_module(module_name)
     except ImportError as error:
-        raise CmatError(f"{env_id}: cannot import {module_name!r} ({error})") from None
+        raise SuiteUnavailable(f"{env_id}: cannot import {module_name!r} ({error})") from None
     factory: Any = module
     for part in attribute.split("."):
         if not hasattr(factory, part):
