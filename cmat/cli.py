@@ -19,7 +19,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cmat.algorithms import algorithm_class
+from cmat.algorithms import algorithm_class, algorithm_names
 from cmat.config import (
     FINETUNE_MODES,
     NESTED_FIELDS,
@@ -50,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "jumanji:TASK, mabrax:TASK; "
                        "host: mamujoco:SCENARIO-CONF, grf:SCENARIO, "
                        "pettingzoo:package.module:factory)")
-    train.add_argument("--algo", help="algorithm (default cmat)")
+    train.add_argument("--algo", help=f"algorithm: {', '.join(algorithm_names())} (default cmat)")
     train.add_argument("--steps", type=int, help="environment steps per seed (total_steps)")
     train.add_argument("--seeds", type=int, help="independent seeds trained at once")
     train.add_argument("--config", type=Path, metavar="FILE.yaml", help="YAML config file")
@@ -136,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
         "config", help="every config field: its value for an algorithm and env, where that "
                        "value comes from, and what the field means",
     )
-    show.add_argument("--algo", help="algorithm (default cmat)")
+    show.add_argument("--algo", help=f"algorithm: {', '.join(algorithm_names())} (default cmat)")
     show.add_argument("--env", help="environment id (its suite's settings apply)")
     show.add_argument("--preset", metavar="NAME", help="a named setting of the algorithm")
     show.add_argument("--set", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
@@ -189,6 +189,9 @@ def main(argv: list[str] | None = None) -> int:
         args.handler(args)
     except CmatError as error:
         return fail(str(error))
+    except BrokenPipeError:  # the reader of stdout left (`cmat config | head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except OSError as error:
         return fail(f"{error.strerror}: {error.filename}" if error.filename else str(error))
     except KeyboardInterrupt:

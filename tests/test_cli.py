@@ -5,9 +5,12 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from collections import Counter
 from pathlib import Path
 
@@ -107,6 +110,33 @@ def test_plot_writes_a_png(trained: Path, run_copy: Path, tmp_path: Path) -> Non
     out = tmp_path / "plots" / "curves.png"
     assert main(["plot", str(trained), str(run_copy), "--out", str(out)]) == 0
     assert out.read_bytes().startswith(b"\x89PNG")
+
+
+def test_an_interrupt_that_python_drops_still_stops_the_run_after_its_chunk(
+    run_copy: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    train_chunk = JaxTrainer.train_chunk
+
+    def chunk_that_swallows_an_interrupt(
+        self: JaxTrainer, state: TrainerState, updates: int | None = None
+    ) -> tuple[TrainerState, dict[str, np.ndarray]]:
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            pass  # as Python does with one raised inside a garbage-collection callback
+        return train_chunk(self, state, updates)
+
+    monkeypatch.setattr(JaxTrainer, "train_chunk", chunk_that_swallows_an_interrupt)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # xdist ignores SIGINT
+    try:
+        assert main(["train", "--resume", str(run_copy), "--steps", "3000"]) == 130
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert "--resume" in capsys.readouterr().err
+    assert RunDir.open(run_copy).load_checkpoint()[1] == 2500
+    assert max(int(r["env_steps"]) for r in rows(run_copy)) == 2500
 
 
 def test_interrupted_then_resumed_run_continues_without_duplicates(

@@ -444,6 +444,26 @@ def test_a_task_that_names_no_environment_is_an_error_not_a_skip(
     assert {path: path.read_bytes() for path in out.rglob("*") if path.is_file()} == before
 
 
+def test_another_experiments_directory_is_refused_and_left_as_it_was(
+    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    before = {path: path.read_bytes() for path in out.rglob("*") if path.is_file()}
+    other = yaml.safe_load(SMOKE.read_text())
+    other["name"] = "another"
+    path = tmp_path / "another.yaml"
+    path.write_text(yaml.safe_dump(other))
+    for options in (["--out", str(out), "--report-only"], ["--out", str(out), "--dry-run"],
+                    ["--out", str(tmp_path / "new"), "--export", str(out)]):
+        assert main(["experiment", str(path), *options]) == 2
+        assert (f"{out} holds the experiment 'smoke', not 'another'"
+                in one_error_line(capsys.readouterr().err))
+    assert {path: path.read_bytes() for path in out.rglob("*") if path.is_file()} == before
+    (out / "results.json").unlink()
+    assert main(["experiment", str(path), "--out", str(out), "--report-only"]) == 2
+    assert "holds the experiment 'smoke'" in one_error_line(capsys.readouterr().err)
+
+
 def test_one_experiment_at_a_time(grid: tuple[Path, bytes, str], tmp_path: Path,
                                   capsys: pytest.CaptureFixture[str]) -> None:
     out = copy_grid(grid, tmp_path)

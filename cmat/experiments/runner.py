@@ -6,9 +6,12 @@ missing (`cmat.experiments.execute`), report the results from every complete run
 from __future__ import annotations
 
 import fnmatch
+import json
 import shutil
 from contextlib import nullcontext
 from pathlib import Path
+
+import yaml
 
 from cmat.errors import CmatError
 from cmat.experiments.execute import (
@@ -69,6 +72,9 @@ def run_experiment(
             raise CmatError(f"--export {export} is the experiment directory itself")
     elif carry:
         raise CmatError("--carry applies to --export only")
+    for directory in (out, export):
+        if directory is not None:
+            check_same_experiment(directory, spec.name)
     plan = make_plan(spec, out)
     selected = select(plan, only)
     if not report_only:
@@ -111,6 +117,24 @@ def run_experiment(
             f"{out / 'results.md'}; run the same command again to retry"
         )
     return plan
+
+
+def check_same_experiment(directory: Path, name: str) -> None:
+    """CmatError where `directory` holds the report of an experiment named otherwise than
+    `name` (its `results.json`, else the `name` in its `spec.yaml`): running or reporting
+    another spec there would replace that experiment's spec, report and figures."""
+    recorded = None
+    for file, key in ((directory / "results.json", "name"), (directory / "spec.yaml", "name")):
+        try:
+            loaded = (json.loads if file.suffix == ".json" else yaml.safe_load)(file.read_text())
+        except (OSError, ValueError, yaml.YAMLError):
+            continue
+        if isinstance(loaded, dict) and isinstance(loaded.get(key), str):
+            recorded = loaded[key]
+            break
+    if recorded is not None and recorded != name:
+        raise CmatError(f"{directory} holds the experiment {recorded!r}, not {name!r}: give "
+                        f"{name!r} a directory of its own (--out, --export)")
 
 
 def select(plan: Plan, only: list[str] | None) -> list[Run]:

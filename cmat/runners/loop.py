@@ -6,8 +6,10 @@ import dataclasses
 import hashlib
 import math
 import os
+import signal
+import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
@@ -61,6 +63,7 @@ def run_training(
     chunks += [remaining % config.updates_per_log] if remaining % config.updates_per_log else []
     try:
         with (
+            remembered_interrupts() as interrupted,
             scalar_writers(config, run_dir, purge_step=done + 1 if resume else None) as writer,
             tqdm(total=config.budget_steps, initial=done, unit="step", unit_scale=True,
                  desc=config.env, dynamic_ncols=True) as bar,
@@ -68,10 +71,37 @@ def run_training(
             for updates in chunks:
                 state = run_chunk(trainer, state, run_dir, writer, bar, updates)
                 session.record(trainer.env_steps(state))
+                if interrupted():
+                    raise KeyboardInterrupt
     except KeyboardInterrupt:
         run_dir.truncate_metrics(run_dir.load_checkpoint()[1])
         raise
     plot_runs([run_dir.path], run_dir.curve_path)
+
+
+@contextmanager
+def remembered_interrupts() -> Iterator[Callable[[], bool]]:
+    """While it is open, Ctrl-C (SIGINT) raises KeyboardInterrupt as usual and is also
+    remembered: the returned function says whether one came. Python drops a KeyboardInterrupt
+    raised inside a garbage-collection callback (JAX registers one, which runs often while a
+    program compiles), so the loop raises it again after the chunk it arrived in. Only where
+    SIGINT has Python's default handler and this is the main thread; elsewhere nothing
+    changes and the function says False."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield lambda: False
+        return
+    received: list[int] = []
+
+    def remember(signum: int, frame: Any) -> None:
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, remember)
+    try:
+        yield lambda: bool(received)
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 class WandbWriter:
