@@ -124,13 +124,13 @@ def check_same_experiment(directory: Path, name: str) -> None:
     `name` (its `results.json`, else the `name` in its `spec.yaml`): running or reporting
     another spec there would replace that experiment's spec, report and figures."""
     recorded = None
-    for file, key in ((directory / "results.json", "name"), (directory / "spec.yaml", "name")):
+    for file in (directory / "results.json", directory / "spec.yaml"):
         try:
             loaded = (json.loads if file.suffix == ".json" else yaml.safe_load)(file.read_text())
         except (OSError, ValueError, yaml.YAMLError):
             continue
-        if isinstance(loaded, dict) and isinstance(loaded.get(key), str):
-            recorded = loaded[key]
+        if isinstance(loaded, dict) and isinstance(loaded.get("name"), str):
+            recorded = loaded["name"]
             break
     if recorded is not None and recorded != name:
         raise CmatError(f"{directory} holds the experiment {recorded!r}, not {name!r}: give "
