@@ -202,3 +202,15 @@ def test_a_claim_says_how_many_of_its_per_task_comparisons_are_still_missing(
     assert coverage(claims["CMAT"]) == " (3 of 4 per-task comparisons)"
     assert coverage(claims["d"]) == " (on 1 of 2 tasks)"
     assert coverage(claims["c"]) == "" and coverage(claims["e"]) == ""
+
+
+def test_a_claim_without_comparisons_says_what_it_needs(spec: ExperimentSpec) -> None:
+    grid = {"matrix:fig1": full_grid()["matrix:fig1"]}
+    data = summary(grid)
+    data["claims"] = judge_claims(data, spec)
+    rows = {line[3]: line for line in claims_section(data, "x")
+            if line.startswith("| (") and line[6] != "|"}
+    assert "CMAT vs MAT: 0.50 [0.50, 0.50]" in rows["e"] and "needs" not in rows["e"]
+    assert "`consensus_source: last`" in rows["c"] and "another m" in rows["d"]
+    for key in "abcd":
+        assert f"| {NO_DATA} | none: needs complete runs of" in rows[key]

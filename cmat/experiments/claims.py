@@ -59,6 +59,17 @@ CLAIMS = {
     "e": "CMAT avoids MAT's Pareto-suboptimal equilibrium on the Fig. 1 game",
 }
 
+EVIDENCE_NEEDED = {
+    "a": "complete runs of a CMAT line and a baseline on the same benchmark (not `matrix:`) task",
+    "b": "complete runs of a fine-tuning stage and another main line on the same benchmark task",
+    "c": ("complete runs of CMAT (default) and a CMAT line with `consensus_source: last` on the "
+          "same benchmark task"),
+    "d": "complete runs of CMAT (default) and CMAT at another m on the same benchmark task",
+    "e": "complete runs of CMAT (default) and MAT on the same `matrix:` task",
+}
+"""What each claim's comparisons are made of: the reason a claim with no comparison has no
+data (the grid or its spec lacks these)."""
+
 
 @dataclass(frozen=True)
 class TaskComparison:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from cmat.experiments.claims import NO_DATA, SEPARATION, coverage
+from cmat.experiments.claims import EVIDENCE_NEEDED, NO_DATA, SEPARATION, coverage
 from cmat.experiments.lines import METRIC_NAMES
 from cmat.experiments.plan import Plan
 
@@ -163,7 +163,7 @@ def claims_section(summary: dict[str, Any], score: str) -> list[str]:
             f"{c['x']} vs {c['y']}: {c['probability']:.2f} [{c['ci'][0]:.2f}, {c['ci'][1]:.2f}]"
             f", IQM {c['iqm_x']:.2f} vs {c['iqm_y']:.2f}, "
             f"{tally(c)} of {len(c['tasks'])} task(s)"
-            for c in claim["comparisons"]) or "the grid has no complete runs of these lines"
+            for c in claim["comparisons"]) or f"none: needs {EVIDENCE_NEEDED[claim['key']]}"
         row = (f"| ({claim['key']}) {claim['statement']} | "
                f"{claim['verdict']}{coverage(claim)} | {evidence} |")
         if from_finals:
@@ -182,8 +182,8 @@ def claims_section(summary: dict[str, Any], score: str) -> list[str]:
                        f" | {t['probability']:.2f} [{t['ci'][0]:.2f}, {t['ci'][1]:.2f}] | "
                        f"{decided[t['outcome']]} |")
     if all(claim["verdict"] == NO_DATA for claim in claims):
-        out += ["", "No claim has data yet: the grid has no complete runs of the lines they "
-                    "compare."]
+        out += ["", "No claim has data yet: none of the comparisons they need has complete runs "
+                    "of both lines."]
     return out
 
 
