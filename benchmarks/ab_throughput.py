@@ -3,6 +3,8 @@
     python benchmarks/ab_throughput.py --before ../cmat-old --after . --algo cmat --algo mappo
     python benchmarks/ab_throughput.py --before OLD --after NEW --env smax:3m --pairs 3 \
         --set ppo.joint_clip=joint ppo.target_tau=0.1
+    python benchmarks/ab_throughput.py --before . --after . --after-python \
+        .venv-latest/bin/python --env smax:6h_vs_8z      # the same code on two JAX installs
 
 Each measurement is one `benchmarks/throughput.py --single` process of that checkout (its own
 code on `PYTHONPATH`): one algorithm's training chunk timed after compilation. Alternating the
@@ -28,10 +30,11 @@ from pathlib import Path
 import numpy as np
 
 
-def steps_per_second(tree: Path, env: str, algo: str, updates: int, overrides: list[str]) -> float:
-    """One `--single` measurement of checkout `tree`."""
+def steps_per_second(tree: Path, python: str, env: str, algo: str, updates: int,
+                     overrides: list[str]) -> float:
+    """One `--single` measurement of checkout `tree` run by interpreter `python`."""
     script = tree / "benchmarks" / "throughput.py"
-    command = [sys.executable, str(script), "--single", "--env", env, "--algo", algo,
+    command = [python, str(script), "--single", "--env", env, "--algo", algo,
                "--updates", str(updates), "--set", *overrides]
     environment = {**os.environ, "PYTHONPATH": str(tree)}
     done = subprocess.run(command, check=False, capture_output=True, text=True, env=environment)
@@ -59,9 +62,9 @@ print(hashlib.sha256(re.sub(r"loc\\([^)]*\\)", "", text).encode()).hexdigest()[:
 """Run in a checkout: the hash of its lowered update program for ENV ALGO OVERRIDES..."""
 
 
-def program_hash(tree: Path, env: str, algo: str, overrides: list[str]) -> str:
+def program_hash(tree: Path, python: str, env: str, algo: str, overrides: list[str]) -> str:
     environment = {**os.environ, "PYTHONPATH": str(tree)}
-    done = subprocess.run([sys.executable, "-c", PROGRAM_HASH, env, algo, *overrides],
+    done = subprocess.run([python, "-c", PROGRAM_HASH, env, algo, *overrides],
                           check=False, capture_output=True, text=True, env=environment)
     if done.returncode != 0:
         raise SystemExit(f"{tree} {algo}: {(done.stderr.strip().splitlines() or ['failed'])[-1]}")
@@ -72,6 +75,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--before", type=Path, required=True, help="checkout A (the baseline)")
     parser.add_argument("--after", type=Path, required=True, help="checkout B")
+    parser.add_argument("--before-python", default=sys.executable,
+                        help="interpreter (hence JAX install) of A (default: this one)")
+    parser.add_argument("--after-python", default=sys.executable,
+                        help="interpreter of B (default: this one)")
     parser.add_argument("--algo", action="append", help="algorithm (repeatable; default cmat)")
     parser.add_argument("--env", default="smax:3m")
     parser.add_argument("--pairs", type=int, default=3,
@@ -83,10 +90,10 @@ def main() -> None:
     args = parser.parse_args()
     if args.programs:
         for algo in args.algo or ["cmat"]:
-            before = program_hash(args.before, args.env, algo, args.set)
-            after = program_hash(args.after, args.env, algo, args.set)
-            verdict = "identical" if before == after else "DIFFERENT"
-            print(f"{algo:<12} update program before {before}  after {after}  {verdict}")
+            hash_a = program_hash(args.before, args.before_python, args.env, algo, args.set)
+            hash_b = program_hash(args.after, args.after_python, args.env, algo, args.set)
+            verdict = "identical" if hash_a == hash_b else "DIFFERENT"
+            print(f"{algo:<12} update program before {hash_a}  after {hash_b}  {verdict}")
     if args.pairs <= 0:
         return
     print(f"Training steps/s on {args.env}, {args.pairs} alternating pairs, overrides: "
@@ -95,8 +102,10 @@ def main() -> None:
     for algo in args.algo or ["cmat"]:
         before, after = [], []
         for _ in range(args.pairs):
-            before.append(steps_per_second(args.before, args.env, algo, args.updates, args.set))
-            after.append(steps_per_second(args.after, args.env, algo, args.updates, args.set))
+            before.append(steps_per_second(args.before, args.before_python, args.env, algo,
+                                           args.updates, args.set))
+            after.append(steps_per_second(args.after, args.after_python, args.env, algo,
+                                          args.updates, args.set))
         ratios = np.array(after) / np.array(before)
         print(f"{algo:<12} {np.median(before):>9.0f} {np.median(after):>9.0f} "
               f"{np.median(ratios):>14.3f} [{ratios.min():.3f}, {ratios.max():.3f}]", flush=True)

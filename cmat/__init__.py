@@ -1,8 +1,9 @@
 """cmat: the Consensus Multi-Agent Transformer for cooperative multi-agent RL, in JAX."""
 
+from cmat.errors import CmatError
 from cmat.version import __version__
 
-__all__ = ["Policy", "__version__", "load_policy"]
+__all__ = ["CmatError", "Policy", "__version__", "load_policy"]
 
 
 def __getattr__(name: str) -> object:

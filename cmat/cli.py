@@ -207,9 +207,7 @@ def fail(message: str) -> int:
 
 def config_command(args: argparse.Namespace) -> None:
     """Print each field as `name = value  [source]` with its docstring indented below."""
-    explicit = [f"{key}={value}" for key, value in
-                (("algo", args.algo), ("env", args.env), ("preset", args.preset))
-                if value is not None]
+    explicit = flag_overrides({"algo": args.algo, "env": args.env, "preset": args.preset})
     config, sources = resolve_config(None, [*args.set, *explicit])
     _, unavailable = probe_env(config.env, config.env_kwargs)
     docs = field_docs()
@@ -245,7 +243,7 @@ def train_command(args: argparse.Namespace) -> None:
         return
     flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds,
              "preset": args.preset}
-    explicit = [f"{key}={value}" for key, value in flags.items() if value is not None]
+    explicit = flag_overrides(flags)
     config, sources = resolve_config(args.config, [*args.set, *explicit])
     if args.dry_run:
         description = describe_env(config)
@@ -253,9 +251,18 @@ def train_command(args: argparse.Namespace) -> None:
         print(f"# {description}")
         return
     trainer = build_trainer(config)
-    out = RunDir.check_free(args.out or default_out(config)).path
+    out = None if args.out is None else RunDir.check_free(args.out).path
     start = trainer.init()  # an environment that fails at reset leaves no run directory
-    train_into(trainer, RunDir.create(out, config, sources), resume=False, start=start)
+    run_dir = (RunDir.create_named(default_out(config), config, sources) if out is None
+               else RunDir.create(out, config, sources))
+    train_into(trainer, run_dir, resume=False, start=start)
+
+
+def flag_overrides(flags: dict[str, str | int | None]) -> list[str]:
+    """KEY=VALUE overrides from the flags given: a string flag is quoted, so that YAML reads
+    `--env 'smax: 3m'`, `--env pettingzoo:` or `--env true` as the string typed."""
+    return [f"{key}='{value.replace(chr(39), chr(39) * 2)}'" if isinstance(value, str)
+            else f"{key}={value}" for key, value in flags.items() if value is not None]
 
 
 def describe_env(config: TrainConfig) -> str:
@@ -291,9 +298,10 @@ def eval_command(args: argparse.Namespace) -> None:
     if args.iterations is not None and config.algo != "cmat":
         raise CmatError(f"--iterations applies to cmat runs only; {run_dir.path} is a "
                         f"{config.algo!r} run")
-    data, env_steps = run_dir.load_checkpoint()
+    from cmat.runners.base import restore_run
+
     trainer = build_trainer(config)
-    state = trainer.from_bytes(data)
+    state, env_steps = restore_run(run_dir, trainer)
     extra: dict[str, object] = {
         "env_steps": env_steps, "budget_steps": config.budget_steps,
         "complete": env_steps == config.budget_steps,
@@ -338,6 +346,7 @@ def with_eval_iterations(
 
 
 def finetune_command(args: argparse.Namespace) -> None:
+    from cmat.runners.base import restore_run
     from cmat.runners.finetune import finetune_config, finetune_start
 
     if args.steps is not None and args.steps <= 0:
@@ -346,11 +355,11 @@ def finetune_command(args: argparse.Namespace) -> None:
     source_config = source_dir.config()
     config, sources = finetune_config(source_config, source_dir.path, args.mode, args.steps,
                                       args.set, source_dir.sources())
-    data, source_steps = source_dir.load_checkpoint()
+    source_state, source_steps = restore_run(source_dir, build_trainer(source_config))
     trainer = build_trainer(config)
-    state = finetune_start(trainer, build_trainer(source_config), data)
-    out = args.out or default_out(config)
-    run_dir = RunDir.create(out, config, sources)
+    state = finetune_start(trainer, source_state)
+    run_dir = (RunDir.create_named(default_out(config), config, sources) if args.out is None
+               else RunDir.create(args.out, config, sources))
     print(f"fine-tuning ({args.mode}) from {source_dir.path} at {source_steps} env steps",
           file=sys.stderr)
     train_into(trainer, run_dir, resume=False, start=state)
@@ -389,6 +398,7 @@ def build_trainer(config: TrainConfig) -> Trainer:
 
 
 def default_out(config: TrainConfig) -> Path:
+    """runs/ENV[-finetune-MODE]-TIMESTAMP (`RunDir.create_named` adds -2, -3, ... if taken)."""
     stage = f"-finetune-{config.finetune}" if config.finetune else ""
     return Path("runs") / f"{config.env.replace(':', '_')}{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
 

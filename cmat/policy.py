@@ -15,6 +15,7 @@ spec's range (host adapters map them onto each agent's Box).
 from __future__ import annotations
 
 import functools
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -75,11 +76,16 @@ class Policy:
         """Actions sampled as in training (shapes as `greedy`); `key` a jax PRNG key
         (default PRNGKey(0)), split over the batch.
 
-        Raises CmatError if obs or action_mask do not have the spec's shapes, or if the policy
-        is recurrent."""
+        Raises CmatError if obs or action_mask do not have the spec's shapes, if `key` is not
+        a PRNG key, or if the policy is recurrent."""
         self._stateless("act")
         obs, action_mask = self._inputs(obs, action_mask)
         key = jax.random.PRNGKey(0) if key is None else key
+        if not isinstance(key, jax.Array) or not (
+                jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+                or (key.shape == (2,) and key.dtype == jnp.uint32)):
+            raise CmatError(f"key must be a jax PRNG key (jax.random.PRNGKey(seed) or "
+                            f"jax.random.key(seed)), got {type(key).__name__} {key!r}"[:200])
         actions: jax.Array = _sample_team(self, self.params, obs, action_mask, key)
         return actions
 
@@ -129,6 +135,9 @@ class Policy:
         if obs.ndim not in (2, 3) or obs.shape[-2:] != team:
             raise CmatError(f"obs must have shape {team} or (batch, *{team}) for "
                             f"{spec.env_id}, got {tuple(obs.shape)}")
+        if not bool(jnp.isfinite(obs).all()):
+            where = tuple(int(i) for i in np.argwhere(~np.isfinite(np.asarray(obs)))[0][:-1])
+            raise CmatError(f"obs holds a NaN or infinite value (team member {where})")
         mask_shape = (*obs.shape[:-1], spec.action_dim)
         if action_mask is None:
             return obs, jnp.ones(mask_shape, bool)
@@ -136,6 +145,10 @@ class Policy:
         if action_mask.shape != mask_shape:
             raise CmatError(f"action_mask must have shape {mask_shape} for obs of shape "
                             f"{tuple(obs.shape)}, got {tuple(action_mask.shape)}")
+        if spec.discrete and not bool(action_mask.any(-1).all()):
+            where = tuple(int(i) for i in np.argwhere(~np.asarray(action_mask).any(-1))[0])
+            raise CmatError(f"action_mask allows no action for team member {where} (a dead "
+                            f"agent allows its no-op)")
         return obs, action_mask
 
 
@@ -185,29 +198,25 @@ def load_policy(run_dir: str | Path, seed: int | None = None) -> Policy:
     """The policy of seed `seed` (default: the run's first, `config.seed`) from the latest
     checkpoint of the run directory `run_dir`, which may be unfinished (see `Policy.complete`).
 
-    Raises CmatError for a directory without a run or checkpoint, a corrupt checkpoint, a seed
-    the run did not train, or a run whose files this version of cmat cannot read."""
+    Raises CmatError for a `run_dir` that is not a path or holds no run or checkpoint, a corrupt
+    checkpoint, a seed that is not an int or that the run did not train, or a run whose files
+    this version of cmat cannot read."""
+    from cmat.runners.base import restore_run
     from cmat.runners.host import build_trainer
-    from cmat.version import __version__
 
+    if not isinstance(run_dir, (str, os.PathLike)):
+        raise CmatError(f"run_dir must be a path, got {type(run_dir).__name__}")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
+        raise CmatError(f"seed must be an int, got {type(seed).__name__} {seed!r}")
     run = RunDir.open(Path(run_dir))
     config = run.config()
-    seed = config.seed if seed is None else seed
+    seed = config.seed if seed is None else int(seed)
     index = seed - config.seed
     if not 0 <= index < config.seeds:
         seeds = f"{config.seed}..{config.seed + config.seeds - 1}"
         raise CmatError(f"{run.path} trained seeds {seeds}; there is no seed {seed}")
-    data, env_steps = run.load_checkpoint()
     trainer = build_trainer(config)
-    try:
-        state = trainer.from_bytes(data)
-    except CmatError as error:
-        written = run.version()
-        origin = f"written by cmat {written}" if written else "written by another cmat version"
-        if written == __version__:
-            raise
-        raise CmatError(f"{run.path}: {error}; the run was {origin}, this is cmat "
-                        f"{__version__}") from None
+    state, env_steps = restore_run(run, trainer)
     params = jax.tree.map(lambda leaf: np.asarray(leaf)[index], state.learner.params)
     trainer.close()
     return Policy(trainer.env_spec, config, seed, env_steps, trainer.learner_setup.algorithm,

@@ -202,10 +202,14 @@ def draw_host(simulator: Any, env_id: str) -> np.ndarray:
             else "a working render()"
         raise CmatError(f"{env_id} cannot draw here: it needs {missing} "
                         f"({type(error).__name__}: {error})") from None
-    if not isinstance(picture, np.ndarray) or picture.ndim != 3:
-        raise CmatError(f"{env_id}: render() returned no RGB array "
-                        f"(got {type(picture).__name__}); it needs render_mode='rgb_array'")
-    return picture
+    if not isinstance(picture, np.ndarray):
+        got = "None" if picture is None else f"a {type(picture).__name__}"
+    elif picture.ndim != 3 or picture.shape[2] not in (3, 4):
+        got = f"an array of shape {picture.shape} and dtype {picture.dtype}"
+    else:
+        return picture
+    raise CmatError(f"{env_id}: render() returned no RGB array (got {got}); expected an "
+                    f"(H, W, 3) uint8 array, as render_mode='rgb_array' gives")
 
 
 def picture_drawing(frames: list[Frame]) -> tuple[Figure, Callable[[Frame], None]]:

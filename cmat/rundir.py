@@ -23,6 +23,7 @@ the checkpoint's env_steps belong to a chunk that never finished and are dropped
 from __future__ import annotations
 
 import csv
+import fcntl
 import hashlib
 import io
 import json
@@ -32,7 +33,8 @@ import shutil
 import socket
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -103,6 +105,42 @@ class RunDir:
     def curve_path(self) -> Path:
         return self.path / "curve.png"
 
+    @property
+    def lock_path(self) -> Path:
+        """Present while a process trains into the run (`training_lock`)."""
+        return self.path / "run.lock"
+
+    @contextmanager
+    def training_lock(self) -> Iterator[None]:
+        """Held by the one process that may train into this run (`cmat train`, `--resume`,
+        `finetune`): an exclusive `flock` on `lock_path`, which holds the holder's pid and is
+        removed on release. Raises CmatError where another process holds it."""
+        while True:
+            descriptor = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(descriptor, 32).decode(errors="replace").strip()
+                os.close(descriptor)
+                raise CmatError(
+                    f"{self.path} is in use by another cmat process"
+                    f"{f' (pid {holder})' if holder.isdigit() else ''}; wait for it to end "
+                    f"or stop it") from None
+            try:
+                same_file = os.fstat(descriptor).st_ino == os.stat(self.lock_path).st_ino
+            except FileNotFoundError:
+                same_file = False
+            if same_file:
+                break
+            os.close(descriptor)
+        try:
+            os.ftruncate(descriptor, 0)
+            os.write(descriptor, f"{os.getpid()}\n".encode())
+            yield
+        finally:
+            self.lock_path.unlink(missing_ok=True)
+            os.close(descriptor)
+
     @classmethod
     def create(
         cls, path: Path, config: TrainConfig, sources: ConfigSources | None = None
@@ -111,18 +149,41 @@ class RunDir:
         value's source where `sources` is given."""
         run = cls.check_free(path)
         run.path.mkdir(parents=True, exist_ok=True)
+        try:
+            run.config_path.open("x").close()
+        except FileExistsError:
+            raise CmatError(f"{run.path} already holds a run; use --resume {run.path} or "
+                            f"another --out") from None
         run.write_config(config, sources)
         return run
+
+    @classmethod
+    def create_named(
+        cls, base: Path, config: TrainConfig, sources: ConfigSources | None = None
+    ) -> RunDir:
+        """Start a new run in a directory made for it: `base`, else the first of `base-2`,
+        `base-3`, ... that no one has made (two processes never get the same one)."""
+        for attempt in range(1, 10_000):
+            path = base if attempt == 1 else base.with_name(f"{base.name}-{attempt}")
+            try:
+                path.mkdir(parents=True)
+            except FileExistsError:
+                continue
+            return cls.create(path, config, sources)
+        raise CmatError(f"no free run directory name beside {base}")
 
     @classmethod
     def check_free(cls, path: Path) -> RunDir:
         """`path` as a run directory not created yet: CmatError where it holds a run already or
         is a file."""
         run = cls(Path(path))
-        if run.config_path.exists() or run.metrics_path.exists():
+        if run.config_path.exists():
             raise CmatError(
                 f"{run.path} already holds a run; use --resume {run.path} or another --out"
             )
+        if run.metrics_path.exists():
+            raise CmatError(f"{run.path} holds a metrics.csv but no config.yaml (not a run "
+                            f"cmat can resume); use another --out")
         if run.path.exists() and not run.path.is_dir():
             raise CmatError(f"--out {run.path} is not a directory")
         return run
@@ -131,6 +192,8 @@ class RunDir:
     def open(cls, path: Path) -> RunDir:
         """An existing run directory (one with a config.yaml)."""
         run = cls(Path(path))
+        if run.path.is_file():
+            raise CmatError(f"{run.path} is a file; give the run's directory")
         if not run.config_path.is_file():
             raise CmatError(f"{run.path} holds no run (no config.yaml)")
         return run
@@ -145,11 +208,10 @@ class RunDir:
             from cmat.version import __version__
 
             written = written_by(text)
-            if written == __version__:
+            if written is None or written == __version__:
                 raise CmatError(f"{self.config_path}: {error}") from None
-            origin = f"cmat {written}" if written else "another cmat version"
-            raise CmatError(f"{self.config_path}: {error} (written by {origin}; this is cmat "
-                            f"{__version__})") from None
+            raise CmatError(f"{self.config_path}: {error} (written by cmat {written}; this is "
+                            f"cmat {__version__})") from None
 
     def version(self) -> str | None:
         """The cmat version that wrote config.yaml (None where it is not recorded)."""

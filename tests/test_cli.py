@@ -202,6 +202,10 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
         (["--env", "matrix:fig1", "--steps", "0"], "steps must be > 0, got 0"),
         (["--env", "matrix:fig1", "--seeds", "0"], "seeds must be > 0, got 0"),
         (["--env", "matrix:fig1", "--algo", "nope"], "unknown algorithm 'nope'"),
+        (["--env", "smax: 3m"], "unknown SMAX scenario ' 3m'"),
+        (["--env", "pettingzoo:"], "PettingZoo id 'pettingzoo:' must look like"),
+        (["--env", "true"], "unknown environment prefix 'true' in 'true'"),
+        (["--env", "matrix:fig1", "--algo", "1.5"], "unknown algorithm '1.5'"),
         (["--env", "matrix:fig1", "--set", "ppo.lr=fast"], "invalid config"),
         (["--config", "missing.yaml"], "config file not found: missing.yaml"),
     ],
@@ -291,3 +295,54 @@ def test_console_script(trained: Path) -> None:
                             capture_output=True, text=True, timeout=300)
     assert failed.returncode == 2
     assert "unknown SMAX scenario" in one_error_line(failed.stderr)
+
+
+@pytest.mark.parametrize(("edit", "reason"), [
+    (("num_envs: 4", "num_envs: 8"), "shapes differ"),
+    (("rollout_length: 25", "rollout_length: 50"), "would count as 4,000"),
+    (("n_embd: 64", "n_embd: 32"), "shapes differ"),
+])
+def test_a_config_edited_against_its_checkpoint_is_reported_and_changes_nothing(
+    run_copy: Path, tmp_path: Path, edit: tuple[str, str], reason: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    config = run_copy / "config.yaml"
+    text = config.read_text()
+    assert text.count(edit[0]) == 1
+    config.write_text(text.replace(*edit))
+    before = snapshot(run_copy)
+    for argv in (["eval", "--run", str(run_copy)],
+                 ["train", "--resume", str(run_copy), "--steps", "4000"],
+                 ["finetune", "--from", str(run_copy), "--mode", "action",
+                  "--out", str(tmp_path / "stage")]):
+        assert main(argv) == 2
+        line = one_error_line(capsys.readouterr().err)
+        assert reason in line and str(config if "count" in reason else run_copy) in line, line
+    assert snapshot(run_copy) == before
+    assert not (tmp_path / "stage").exists()
+
+
+def test_a_run_in_training_elsewhere_or_complete_is_left_as_it_is(
+    run_copy: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = snapshot(run_copy)
+    assert main(["train", "--resume", str(run_copy)]) == 0
+    assert "is complete at 2,000 env steps per seed" in capsys.readouterr().err
+    assert snapshot(run_copy) == before
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from pathlib import Path; "
+         "from cmat.rundir import RunDir\n"
+         "with RunDir(Path(sys.argv[1])).training_lock():\n"
+         "    print('held', flush=True); time.sleep(60)", str(run_copy)],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        held = snapshot(run_copy)
+        assert main(["train", "--resume", str(run_copy), "--steps", "3000"]) == 2
+        line = one_error_line(capsys.readouterr().err)
+        assert f"in use by another cmat process (pid {holder.pid})" in line
+        assert main(["eval", "--run", str(run_copy), "--episodes", "2"]) == 0
+        assert snapshot(run_copy) == held
+    finally:
+        holder.kill()
+        holder.wait()

@@ -119,6 +119,8 @@ def as_algorithm(config: dict, algo: str) -> dict:
         ({"algo": "mat"}, [], "fine-tuning freezes CMAT's blocks;"),
         ({}, ["--set", "network.n_embd=32"], "fine-tuning cannot change network"),
         ({}, ["--set", "seeds=3"], "fine-tuning cannot change seeds"),
+        ({}, ["--set", "algo=mat"], "fine-tuning cannot change algo"),
+        ({}, ["--set", "finetune=consensus"], "--set finetune: a fine-tuning stage is named by"),
         ({}, ["--steps", "0"], "--steps must be > 0"),
     ],
 )

@@ -7,6 +7,7 @@ keep crashing. One small ParallelEnv per kind, referred to by id as
 from __future__ import annotations
 
 import logging
+import multiprocessing
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -17,8 +18,9 @@ from pettingzoo import ParallelEnv
 
 from cmat.cli import main
 from cmat.envs.host import make_host_env
-from cmat.envs.host.pool import InProcessPool, WorkerPool
-from cmat.errors import CmatError
+from cmat.envs.host.pool import InProcessPool, WorkerPool, make_pool
+from cmat.errors import CmatError, SuiteUnavailable
+from cmat.render import draw_host
 from cmat.resolve import load_config
 from cmat.runners.host import HostTrainer
 
@@ -121,7 +123,9 @@ class FaultyGame(ParallelEnv):
     """Two agents, 5-step episodes, observations of shape (3,), rewards 1.0. `fault` breaks one
     thing at episode step `at` (0: at reset): "obs_shape" (a (4,) observation), "reward" (the
     reward as `reward_value`), "nan_obs", "nan_reward", "raise" (the simulator raises, every
-    time from then on)."""
+    time from then on), "no_rewards" (an empty rewards dict), "missing_reward" (none for "q"),
+    "gym4" (a Gym-style 4-tuple), "dead_mask" (an info action mask of "q" that allows no
+    action)."""
 
     metadata: ClassVar[dict[str, Any]] = {"name": "faulty_game"}
 
@@ -149,9 +153,15 @@ class FaultyGame(ParallelEnv):
         if self.fault == "raise" and self.at == 0:
             raise RuntimeError("the simulator fell over at reset")
         self.agents = list(self.possible_agents)
-        return self._observe(), {}
+        return self._observe(), self._infos()
 
-    def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
+    def _infos(self) -> dict[str, dict]:
+        infos: dict[str, dict] = {agent: {} for agent in self.agents}
+        if self._t == self.at and self.fault == "dead_mask":
+            infos["q"]["action_mask"] = np.zeros(2, np.int8)
+        return infos
+
+    def step(self, actions: dict[str, int]) -> tuple[dict, ...]:
         self._t += 1
         if self.fault == "raise" and self._t >= self.at:
             raise RuntimeError("the simulator fell over")
@@ -159,12 +169,46 @@ class FaultyGame(ParallelEnv):
         if self.fault == "nan_reward" and self._t == self.at:
             reward = float("nan")
         end = self._t >= 5
-        obs = self._observe()
+        obs, infos = self._observe(), self._infos()
         agents = list(self.agents)
         if end:
             self.agents = []
-        return (obs, {a: reward for a in agents}, {a: end for a in agents},
-                {a: False for a in agents}, {a: {} for a in agents})
+        rewards = {a: reward for a in agents}
+        if self._t == self.at and self.fault in ("no_rewards", "missing_reward"):
+            rewards = {"p": reward} if self.fault == "missing_reward" else {}
+        if self._t == self.at and self.fault == "gym4":
+            return obs, rewards, {a: end for a in agents}, infos
+        return obs, rewards, {a: end for a in agents}, {a: False for a in agents}, infos
+
+
+class ShapedGame(FaultyGame):
+    """FaultyGame with `agents` agents (2 or 3) observing `obs_size` values each."""
+
+    built: ClassVar[int] = 0
+    """Instances `shaped_game` has built (tests set it to 0)."""
+
+    def __init__(self, agents: int = 2, obs_size: int = 3) -> None:
+        super().__init__()
+        self.possible_agents = ["p", "q", "r"][:agents]
+        self.obs_size = obs_size
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        return spaces.Box(-1.0, 1.0, (self.obs_size,), np.float32)
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        return {agent: np.zeros(self.obs_size, np.float32) for agent in self.agents}
+
+
+class SpacelessGame(FaultyGame):
+    """FaultyGame whose observation_space is PettingZoo's default, which reads the
+    `observation_spaces` it lacks, or (`none`) returns None."""
+
+    def __init__(self, none: bool = False) -> None:
+        super().__init__()
+        self.none = none
+
+    def observation_space(self, agent: str) -> Any:
+        return None if self.none else ParallelEnv.observation_space(self, agent)
 
 
 def roster_game() -> RosterGame:
@@ -179,9 +223,27 @@ def faulty_game(**kwargs: Any) -> FaultyGame:
     return FaultyGame(**kwargs)
 
 
+def shaped_game(differs: str, from_build: int = 1) -> ShapedGame:
+    """A ShapedGame that from its `from_build`-th build on (counting from 0), or `differs`
+    "obs_in_workers" in worker processes, has a third agent ("agents") or observations of 5
+    values ("obs", "obs_in_workers")."""
+    ShapedGame.built += 1
+    other = (multiprocessing.parent_process() is not None if differs == "obs_in_workers"
+             else ShapedGame.built > from_build)
+    if not other:
+        return ShapedGame()
+    return ShapedGame(agents=3) if differs == "agents" else ShapedGame(obs_size=5)
+
+
+def spaceless_game(**kwargs: Any) -> SpacelessGame:
+    return SpacelessGame(**kwargs)
+
+
 ROSTER = f"pettingzoo:{HERE}:roster_game"
 BOX = f"pettingzoo:{HERE}:box_game"
 FAULTY = f"pettingzoo:{HERE}:faulty_game"
+SHAPED = f"pettingzoo:{HERE}:shaped_game"
+SPACELESS = f"pettingzoo:{HERE}:spaceless_game"
 
 
 # ---------------------------------------------------------------- agents that join and leave
@@ -272,6 +334,17 @@ def test_a_policy_learns_to_hit_targets_inside_boxes_far_from_zero() -> None:
                                         "episode (nan)"),
         ({"fault": "nan_obs", "at": 4}, "non-finite observation of agent 'q' at step 4"),
         ({"fault": "nan_reward", "at": 1}, "non-finite reward of agent 'p' at step 1"),
+        ({"fault": "no_rewards", "at": 1}, "rewards at step 1 of an episode has no reward for "
+                                           "agent(s) 'p', 'q', which acted"),
+        ({"fault": "missing_reward", "at": 3}, "rewards at step 3 of an episode has no reward "
+                                               "for agent(s) 'q', which acted"),
+        ({"fault": "gym4", "at": 2}, "step must return (observations, rewards, terminations, "
+                                     "truncations, infos), got a tuple of 4 items; a Gym-style "
+                                     "(obs, reward, done, info)?"),
+        ({"fault": "dead_mask", "at": 0}, "the action mask of live agent 'q' at step 0 of an "
+                                          "episode allows no action"),
+        ({"fault": "dead_mask", "at": 4}, "the action mask of live agent 'q' at step 4 of an "
+                                          "episode allows no action"),
     ],
 )
 def test_malformed_returns_are_error_line(kwargs: dict, message: str) -> None:
@@ -299,7 +372,8 @@ def test_nonfinite_values_are_replaced_and_counted_when_asked() -> None:
     assert pool.counters()["env_nonfinite"].tolist() == [1, 1]
 
 
-@pytest.mark.parametrize("fault", [{"fault": "obs_shape", "at": 0}, {"fault": "nan_obs", "at": 0}])
+@pytest.mark.parametrize("fault", [{"fault": "obs_shape", "at": 0}, {"fault": "nan_obs", "at": 0},
+                                   {"fault": "dead_mask", "at": 0}])
 def test_a_run_whose_env_fails_at_reset_leaves_no_run_directory(
     fault: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -360,3 +434,113 @@ def test_cmats_own_errors_are_not_taken_for_crashes() -> None:
     with pytest.raises(IndexError):
         pool.step(np.zeros((0, 2), int))  # a bug on cmat's side: no restart, no retry
     assert pool.counters()["env_restarts"].tolist() == [0]
+
+
+# ------------------------------------------------------------- factories whose instances differ
+@pytest.mark.parametrize(
+    ("differs", "message"),
+    [
+        ("agents", "environment 1 differs from the first one built (agents ['p', 'q'] vs "
+                   "['p', 'q', 'r']; num_agents 2 vs 3; observation_space('r') (none) vs Box("),
+        ("obs", "environment 1 differs from the first one built (observation_space('p') "
+                "Box(-1.0, 1.0, (3,), float32) vs Box(-1.0, 1.0, (5,), float32); "),
+    ],
+)
+def test_a_factory_whose_instances_differ_is_an_error_line(
+    differs: str, message: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(ShapedGame, "built", 0)
+    with pytest.raises(CmatError, match=r"^pettingzoo:.*shaped_game: ") as raised:
+        InProcessPool(SHAPED, {"differs": differs}, [0, 1, 2])
+    assert message in str(raised.value) and "\n" not in str(raised.value)
+    assert str(raised.value).endswith("every instance the factory builds must have the same "
+                                      "agents and spaces")
+
+
+def test_a_restarted_environment_is_checked_too(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ShapedGame, "built", 0)
+    pool = InProcessPool(SHAPED, {"differs": "obs", "from_build": 2}, [0, 1])
+    try:
+        with pytest.raises(CmatError, match=r"environment 1 differs from the first one built"):
+            pool._restart(1, "a test crash")
+    finally:
+        pool.close()
+
+
+def test_worker_environments_are_checked_against_the_first_one_built() -> None:
+    probe = make_host_env(SHAPED, differs="obs_in_workers")
+    with pytest.raises(CmatError, match=r"shaped_game: environment 0 differs from the first "
+                                        r"one built \(observation_space\('p'\)"):
+        make_pool(SHAPED, {"differs": "obs_in_workers"}, [0, 1], workers=1, envs=[probe])
+
+
+def test_a_run_whose_factory_builds_unlike_instances_stops_before_its_directory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(ShapedGame, "built", 0)
+    out = tmp_path / "run"
+    assert main(["train", "--env", SHAPED, "--steps", "40", "--out", str(out), "--set",
+                 "num_envs=2", "rollout_length=5", "network.n_embd=8",
+                 "env_kwargs.differs=agents"]) == 2
+    assert "environment 1 differs from the first one built (agents" in error_line(
+        capsys.readouterr().err)
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------- spaces, imports, render
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({}, "the env has no observation_space(agent) method or observation_spaces dict"),
+        ({"none": True}, "observation_space('p') returned None, expected a gymnasium Space"),
+    ],
+)
+def test_missing_spaces_are_an_error_line_even_in_a_dry_run(
+    kwargs: dict, message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sets = [f"env_kwargs.{key}={value}" for key, value in kwargs.items()]
+    options = ["--set", *sets] if sets else []
+    assert main(["train", "--env", SPACELESS, "--dry-run", *options]) == 2
+    assert error_line(capsys.readouterr().err).endswith(message)
+
+
+def test_an_unimportable_module_hints_at_pythonpath_or_names_the_missing_dependency(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "cmat_user_envs_a.py").write_text("import cmat_no_such_dependency\n")
+    (tmp_path / "cmat_user_envs_b.py").write_text("raise RuntimeError('half written')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(SuiteUnavailable) as own:
+        make_host_env("pettingzoo:cmat_no_such_package.envs:make")
+    assert ("cannot import 'cmat_no_such_package.envs' (No module named 'cmat_no_such_package'); "
+            "it must be importable from the Python running cmat (") in str(own.value)
+    assert str(own.value).endswith("put its directory on PYTHONPATH or pip-install its package")
+    with pytest.raises(SuiteUnavailable) as dependency:
+        make_host_env("pettingzoo:cmat_user_envs_a:make")
+    assert str(dependency.value).endswith(
+        "cannot import 'cmat_user_envs_a': it imports 'cmat_no_such_dependency', which is not "
+        "installed (No module named 'cmat_no_such_dependency')")
+    with pytest.raises(CmatError, match=r"importing 'cmat_user_envs_b' raised RuntimeError: "
+                                        r"half written$"):
+        make_host_env("pettingzoo:cmat_user_envs_b:make")
+
+
+@pytest.mark.parametrize(
+    ("picture", "got"),
+    [
+        (np.zeros((32, 48), np.uint8), "an array of shape (32, 48) and dtype uint8"),
+        (np.zeros((32, 48, 2), np.float32), "an array of shape (32, 48, 2) and dtype float32"),
+        (None, "None"),
+        ([[0]], "a list"),
+    ],
+)
+def test_a_render_that_is_no_rgb_array_says_what_it_got(picture: Any, got: str) -> None:
+    class Simulator:
+        def render(self) -> Any:
+            return picture
+
+    with pytest.raises(CmatError) as raised:
+        draw_host(Simulator(), "pettingzoo:m:f")
+    assert str(raised.value) == (f"pettingzoo:m:f: render() returned no RGB array (got {got}); "
+                                 f"expected an (H, W, 3) uint8 array, as "
+                                 f"render_mode='rgb_array' gives")

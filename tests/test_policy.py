@@ -77,6 +77,11 @@ def test_one_team_or_a_batch_and_sampling(smax_run: Path) -> None:
     assert mask[np.arange(3)[:, None], np.arange(3), np.asarray(sampled)].all()
     only_stop = jnp.zeros_like(steps.action_mask).at[..., 1].set(True)
     assert np.all(np.asarray(policy.act(steps.obs, only_stop)) == 1)
+    assert np.array_equal(policy.act(steps.obs, only_stop, jax.random.key(3)),
+                          policy.act(steps.obs, only_stop, jax.random.PRNGKey(3)))
+    for bad_key in (0, np.zeros(2, np.uint32), jnp.zeros(3, jnp.uint32)):
+        with pytest.raises(CmatError, match="key must be a jax PRNG key"):
+            policy.act(steps.obs, only_stop, bad_key)
     other_seed = cmat.load_policy(smax_run, seed=6)
     assert not all(np.array_equal(a, b) for a, b in zip(
         jax.tree.leaves(policy.params), jax.tree.leaves(other_seed.params), strict=True))
@@ -98,11 +103,34 @@ def test_inputs_of_the_wrong_shape_are_one_error(
         policy.greedy(np.zeros(obs_shape), mask)
 
 
+def test_inputs_no_team_could_give_are_one_error(smax_run: Path) -> None:
+    policy = cmat.load_policy(smax_run)
+    obs, mask = np.zeros((2, 3, 75)), np.ones((2, 3, 8), bool)
+    obs[1, 2, 40] = np.nan
+    for act in (policy.greedy, policy.act):
+        with pytest.raises(CmatError, match=re.escape("infinite value (team member (1, 2))")):
+            act(obs, mask)
+    obs[1, 2, 40] = 0.0
+    mask[0, 1] = False
+    for act in (policy.greedy, policy.act):
+        with pytest.raises(CmatError, match=re.escape("allows no action for team member (0, 1)")):
+            act(obs, mask)
+    mask[0, 1, 0] = True
+    assert np.asarray(policy.greedy(obs, mask))[0, 1] == 0
+
+
 def test_runs_that_cannot_be_loaded_are_one_error(smax_run: Path, tmp_path: Path) -> None:
     with pytest.raises(CmatError, match=r"trained seeds 5..6; there is no seed 7"):
         cmat.load_policy(smax_run, seed=7)
     with pytest.raises(CmatError, match="holds no run"):
         cmat.load_policy(tmp_path)
+    with pytest.raises(cmat.CmatError, match="is a file; give the run's directory"):
+        cmat.load_policy(smax_run / "config.yaml")
+    for bad_seed in ("5", 5.0, True):
+        with pytest.raises(CmatError, match="seed must be an int"):
+            cmat.load_policy(smax_run, seed=bad_seed)  # type: ignore[arg-type]
+    with pytest.raises(CmatError, match="run_dir must be a path, got int"):
+        cmat.load_policy(123)  # type: ignore[arg-type]
     partial = tmp_path / "partial"
     partial.mkdir()
     (partial / "config.yaml").write_bytes((smax_run / "config.yaml").read_bytes())

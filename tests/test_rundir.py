@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -38,14 +40,56 @@ def test_create_writes_config_that_reads_back(tmp_path: Path) -> None:
     assert RunDir.open(run.path).config() == config
 
 
-@pytest.mark.parametrize("existing", ["config.yaml", "metrics.csv"])
-def test_create_refuses_a_directory_holding_a_run(tmp_path: Path, existing: str) -> None:
+@pytest.mark.parametrize(("existing", "message"), [
+    ("config.yaml", "already holds a run; use --resume"),
+    ("metrics.csv", "holds a metrics.csv but no config.yaml .* use another --out"),
+])
+def test_create_refuses_a_directory_holding_a_run(
+    tmp_path: Path, existing: str, message: str
+) -> None:
     (tmp_path / existing).write_text("kept")
     (tmp_path / "other.txt").write_text("also kept")
     before = snapshot(tmp_path)
-    with pytest.raises(CmatError, match="already holds a run; use --resume"):
+    with pytest.raises(CmatError, match=message):
         RunDir.create(tmp_path, TrainConfig())
     assert snapshot(tmp_path) == before
+
+
+def test_runs_named_at_the_same_moment_get_directories_of_their_own(tmp_path: Path) -> None:
+    base = tmp_path / "runs" / "smax_3m-20261202-150509"
+    (base.parent / f"{base.name}-2").mkdir(parents=True)
+    made = [RunDir.create_named(base, TrainConfig()).path for _ in range(3)]
+    assert made == [base, base.with_name(f"{base.name}-3"), base.with_name(f"{base.name}-4")]
+    assert all((path / "config.yaml").is_file() for path in made)
+
+
+def test_one_process_at_a_time_holds_a_runs_training_lock(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path / "run", TrainConfig())
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from pathlib import Path; "
+         "from cmat.rundir import RunDir\n"
+         "with RunDir(Path(sys.argv[1])).training_lock():\n"
+         "    print('held', flush=True); time.sleep(60)", str(run.path)],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        with pytest.raises(CmatError, match=rf"in use by another cmat process \(pid "
+                                            rf"{holder.pid}\)"), run.training_lock():
+            pass
+    finally:
+        holder.kill()
+        holder.wait()
+    with run.training_lock():
+        assert run.lock_path.read_text() == f"{os.getpid()}\n"
+    assert not run.lock_path.exists()
+    with run.training_lock():
+        pass
+
+
+def test_open_of_a_file_names_the_mistake(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path / "run", TrainConfig())
+    with pytest.raises(CmatError, match=r"config.yaml is a file; give the run's directory"):
+        RunDir.open(run.config_path)
 
 
 def test_create_accepts_an_existing_directory_without_a_run(tmp_path: Path) -> None:

@@ -21,6 +21,7 @@ import threadpoolctl
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
+from cmat.rundir import RunDir
 from cmat.runners.collector import EnvsState
 from cmat.runners.learner import LearnerSetup, LearnerState
 
@@ -136,6 +137,38 @@ def restore_state(
         raise CmatError("checkpoint does not match this run's config (shapes differ)")
     state: TrainerState = jax.tree.map(jnp.asarray, restored)
     return state
+
+
+def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
+    """The state in `run_dir`'s latest checkpoint, restored by `trainer` (built from the run's
+    config.yaml), and its env steps per seed.
+
+    Raises CmatError naming the checkpoint where it is missing or corrupt, where its state does
+    not fit `trainer` (a config.yaml edited since, or written by another cmat version: the
+    message says which version wrote the run), and where the steps the state counts at the
+    config's num_envs x rollout_length differ from the steps its header records (those two
+    edited: they fix what one update is)."""
+    from cmat.version import __version__
+
+    data, env_steps = run_dir.load_checkpoint()
+    try:
+        state = trainer.from_bytes(data)
+    except CmatError as error:
+        written = run_dir.version()
+        hint = (f"does {run_dir.config_path} still describe the run that wrote it?"
+                if written == __version__ else
+                f"the run was written by {f'cmat {written}' if written else 'another cmat version'}"
+                f", this is cmat {__version__}")
+        raise CmatError(f"{run_dir.checkpoint_path}: {error}; {hint}") from None
+    counted = trainer.env_steps(state)
+    if counted != env_steps:
+        config = trainer.config
+        raise CmatError(
+            f"{run_dir.config_path} does not match its checkpoint: the checkpoint holds "
+            f"{env_steps:,} env steps, which num_envs={config.num_envs} x "
+            f"rollout_length={config.rollout_length} would count as {counted:,}; a run's "
+            f"num_envs and rollout_length cannot change")
+    return state, env_steps
 
 
 def single_threaded_lapack() -> threadpoolctl.threadpool_limits:

@@ -45,13 +45,15 @@ def finetune_config(
             f"fine-tuning freezes CMAT's blocks; {source_dir} is a {source.algo!r} run, which "
             f"has no fine-tuning stage {mode!r}"
         )
+    for override in overrides:
+        key = override.split("=", 1)[0].strip()
+        field = key.split(".", 1)[0]
+        if field in FIXED_FIELDS:
+            raise CmatError(f"fine-tuning cannot change {field} of the source run (its "
+                            f"checkpoint holds the parameters for it)")
+        if field in ("finetune", "finetune_from"):
+            raise CmatError(f"--set {key}: a fine-tuning stage is named by --mode and --from")
     config, sources = resolve_config(None, overrides, base=source, base_sources=source_sources)
-    changed = [name for name in FIXED_FIELDS if getattr(config, name) != getattr(source, name)]
-    if changed:
-        raise CmatError(
-            f"fine-tuning cannot change {changed[0]} of the source run "
-            f"(its checkpoint holds the parameters for it)"
-        )
     config = dataclasses.replace(
         config,
         finetune=mode,
@@ -65,11 +67,10 @@ def finetune_config(
     return check_config(validate(config)), sources
 
 
-def finetune_start(trainer: Trainer, source_trainer: Trainer, data: bytes) -> TrainerState:
+def finetune_start(trainer: Trainer, source: TrainerState) -> TrainerState:
     """The first state of a fine-tuning run: `trainer`'s fresh state carrying the source
-    checkpoint's parameters, target critic and value normaliser, with a fresh optimizer state
-    for `trainer`'s masked optimizer."""
-    source = source_trainer.from_bytes(data)
+    run's parameters, target critic and value normaliser (`source`, its checkpoint's state),
+    with a fresh optimizer state for `trainer`'s masked optimizer."""
     fresh = trainer.init()
     learner = dataclasses.replace(
         fresh.learner,

@@ -106,6 +106,7 @@ class HostTrainer:
         probe = make_host_env(config.env, seed=config.seed, nonfinite=config.host_nonfinite,
                               **config.env_kwargs)
         self.env_spec = probe.spec
+        self._reference = probe.description()
         self._spare = [probe]  # becomes the first environment of an in-process pool
         self.learner_setup = build_learner(config, self.env_spec)
         options = compiler_options(self.learner_setup.algorithm.ynnpack_matmuls)
@@ -136,7 +137,7 @@ class HostTrainer:
         spare, self._spare = self._spare, []
         config = self.config
         return make_pool(config.env, config.env_kwargs, seeds, self.workers, spare,
-                         config.host_crash_limit, config.host_nonfinite)
+                         config.host_crash_limit, config.host_nonfinite, self._reference)
 
     def _start_episodes(self) -> HostBatch:
         """Build the training pool if needed and start an episode in every environment."""

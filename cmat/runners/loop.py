@@ -7,6 +7,7 @@ import hashlib
 import math
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -35,22 +36,36 @@ def run_training(
 
     After each chunk: a train and an eval row per seed in metrics.csv and TensorBoard (where
     charts/steps_per_second counts the steps of all seeds), then the checkpoint. Resuming
-    continues from the checkpoint and drops metric rows written after it. An interruption
-    leaves the rows and the checkpoint of the last completed chunk. A chunk with a non-finite
-    loss, gradient norm or parameter raises `CmatError` naming the update, before anything of it
-    is written, so the last good checkpoint stays as it was. A new run starts from `start`
-    where given (a fine-tuning run's state, cmat.runners.finetune), else `trainer.init()`.
-    Each session of the run (this call) is recorded in sessions.jsonl (`Session`).
+    continues from the checkpoint and drops metric rows written after it; resuming a complete
+    run says so and writes nothing. An interruption leaves the rows and the checkpoint of the
+    last completed chunk. A chunk with a non-finite loss, gradient norm or parameter raises
+    `CmatError` naming the update, before anything of it is written, so the last good
+    checkpoint stays as it was. A new run starts from `start` where given (a fine-tuning run's
+    state, cmat.runners.finetune), else `trainer.init()`. One process at a time trains into a
+    run (`RunDir.training_lock`; CmatError for a second). Each session of the run (this call)
+    is recorded in sessions.jsonl (`Session`).
     """
+    with run_dir.training_lock():
+        train_locked(trainer, run_dir, resume, start)
+
+
+def train_locked(
+    trainer: Trainer, run_dir: RunDir, resume: bool, start: TrainerState | None
+) -> None:
+    """`run_training` once the run's lock is held."""
     config = trainer.config
     if resume:
-        data, _ = run_dir.load_checkpoint()
-        state = trainer.from_bytes(data)
-        done = trainer.env_steps(state)
+        from cmat.runners.base import restore_run
+
+        state, done = restore_run(run_dir, trainer)
         if config.budget_steps < done:
             raise CmatError(
                 f"steps ({config.total_steps}) is below the {done} env steps already done"
             )
+        if config.budget_steps == done:
+            print(f"cmat: {run_dir.path} is complete at {done:,} env steps per seed; "
+                  f"--steps N above that extends it", file=sys.stderr)
+            return
         run_dir.write_config(config, run_dir.resumed_sources(config))
         run_dir.truncate_metrics(done)
     else:

@@ -19,10 +19,12 @@ How a ParallelEnv maps onto the protocol (README, "Host environments"):
   the map is fixed and affine, so the ratio of two policies' densities (each agent's r_i, and
   the joint ratio Π_i r_i) is the same in either space.
 - Action masks: `obs[agent]["action_mask"]` or `info[agent]["action_mask"]` where the env gives
-  them; otherwise every action is available.
+  them; otherwise every action is available. A live agent whose mask allows no action is a
+  `CmatError`.
 - Team reward: the mean of the rewards of the agents that got one this step (a shared reward
-  passes through unchanged; a sum would scale with the team size). A reward may be a number, a
-  NumPy scalar or a size-1 array; any other shape is a `CmatError`.
+  passes through unchanged; a sum would scale with the team size). Every agent that acted must
+  get one. A reward may be a number, a NumPy scalar or a size-1 array; any other shape is a
+  `CmatError`.
 - Global state: `env.state()` flattened, where the env implements it (its size from
   `state_space` or one probing reset); otherwise none, and centralised critics read the
   concatenated observations. MaMuJoCo's `state()` is the single-agent environment's observation.
@@ -37,6 +39,7 @@ How a ParallelEnv maps onto the protocol (README, "Host environments"):
 from __future__ import annotations
 
 import importlib
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -59,8 +62,19 @@ def load_factory(env_id: str, target: str) -> Callable[..., Any]:
         )
     try:
         module = importlib.import_module(module_name)
-    except ImportError as error:
-        raise SuiteUnavailable(f"{env_id}: cannot import {module_name!r} ({error})") from None
+    except ModuleNotFoundError as error:
+        missing = error.name or ""
+        if module_name == missing or module_name.startswith(f"{missing}."):
+            raise SuiteUnavailable(
+                f"{env_id}: cannot import {module_name!r} ({error}); it must be importable from "
+                f"the Python running cmat ({sys.executable}): put its directory on PYTHONPATH "
+                f"or pip-install its package"
+            ) from None
+        raise SuiteUnavailable(f"{env_id}: cannot import {module_name!r}: it imports "
+                               f"{missing!r}, which is not installed ({error})") from None
+    except Exception as error:  # the user's module: any error while importing it
+        raise CmatError(f"{env_id}: importing {module_name!r} raised "
+                        f"{type(error).__name__}: {error}") from None
     factory: Any = module
     for part in attribute.split("."):
         if not hasattr(factory, part):
@@ -109,6 +123,27 @@ def probe_state_dim(env: Any, env_id: str) -> int:
         return 0
 
 
+def agent_space(env: Any, env_id: str, kind: str, agent: str) -> Any:
+    """`env.observation_space(agent)` (`kind` "observation") or `env.action_space(agent)`;
+    CmatError where the env has no such space or it is not a gymnasium Space."""
+    import gymnasium.spaces as spaces
+
+    call = f"{kind}_space({agent!r})"
+    try:
+        space = getattr(env, f"{kind}_space")(agent)
+    except AttributeError as error:
+        if error.name not in (f"{kind}_space", f"{kind}_spaces"):
+            raise CmatError(f"{env_id}: {call} raised AttributeError: {error}") from None
+        raise CmatError(f"{env_id}: the env has no {kind}_space(agent) method or "
+                        f"{kind}_spaces dict") from None
+    except Exception as error:  # the user's space method
+        raise CmatError(f"{env_id}: {call} raised {type(error).__name__}: {error}") from None
+    if not isinstance(space, spaces.Space):
+        got = "None" if space is None else f"a {type(space).__name__}"
+        raise CmatError(f"{env_id}: {call} returned {got}, expected a gymnasium Space")
+    return space
+
+
 class PettingZooEnv(AutoReset):
     """A PettingZoo ParallelEnv adapted to `HostEnv` (see the module docstring)."""
 
@@ -128,12 +163,13 @@ class PettingZooEnv(AutoReset):
             raise CmatError(f"{env_id}: the env has no agents")
         self._obs_spaces = []
         for agent in self.agents:
-            space = env.observation_space(agent)
+            space = agent_space(env, env_id, "observation", agent)
             if isinstance(space, spaces.Dict) and "observation" in space.spaces:
                 space = space["observation"]
             self._obs_spaces.append(space)
         self._obs_sizes = [int(spaces.flatdim(space)) for space in self._obs_spaces]
-        action_spaces = [env.action_space(agent) for agent in self.agents]
+        action_spaces = [agent_space(env, env_id, "action", agent) for agent in self.agents]
+        self._action_spaces = action_spaces
         if all(isinstance(space, spaces.Discrete) for space in action_spaces):
             discrete = True
             self._action_sizes = [int(space.n) for space in action_spaces]
@@ -181,6 +217,17 @@ class PettingZooEnv(AutoReset):
         self._active_now = np.zeros(len(self.agents), bool)
         """Agents in `_live` with an observation in the last reset or step."""
 
+    def description(self) -> dict[str, Any]:
+        """The spec's fields, the agents and each agent's observation and action space."""
+        return {
+            "agents": self.agents,
+            **{f"observation_space({agent!r})": space
+               for agent, space in zip(self.agents, self._obs_spaces)},
+            **{f"action_space({agent!r})": space
+               for agent, space in zip(self.agents, self._action_spaces)},
+            **super().description(),
+        }
+
     def close(self) -> None:
         """Close the PettingZoo env."""
         close = getattr(self.env, "close", None)
@@ -204,13 +251,20 @@ class PettingZooEnv(AutoReset):
         with simulator_call(self.spec.env_id, "step"):
             result = self.env.step(joint)
         if not isinstance(result, tuple) or len(result) != 5:
+            got = (f"a tuple of {len(result)} items" if isinstance(result, tuple)
+                   else type(result).__name__)
+            gym = "; a Gym-style (obs, reward, done, info)?" if got == "a tuple of 4 items" else ""
             raise CmatError(f"{self.spec.env_id}: step must return (observations, rewards, "
-                            f"terminations, truncations, infos), got {type(result).__name__}")
+                            f"terminations, truncations, infos), got {got}{gym}")
         obs, rewards, terminations, truncations, infos = (
             self._mapping(part, name) for part, name in zip(
                 result, ("observations", "rewards", "terminations", "truncations", "infos")
             )
         )
+        unrewarded = [agent for agent in joint if agent not in rewards]
+        if unrewarded:
+            raise CmatError(f"{self.spec.env_id}: rewards {self.at_step} has no reward for "
+                            f"agent(s) {', '.join(map(repr, unrewarded))}, which acted")
         self._live = self._live_agents(obs, terminations, truncations)
         done = not self._live or self.episode_step >= self.spec.max_episode_steps
         team = [self._reward(agent, value) for agent, value in rewards.items()
@@ -309,7 +363,9 @@ class PettingZooEnv(AutoReset):
             else:
                 mask[index, :size] = np.asarray(agent_mask, bool).reshape(-1)[:size]
                 if not mask[index].any():
-                    mask[index, 0] = True
+                    raise CmatError(f"{spec.env_id}: the action mask of live agent {agent!r} "
+                                    f"{self.at_step} allows no action; an agent with nothing to "
+                                    f"do must leave env.agents")
         return obs_array, mask
 
     def _flat_observation(self, index: int, value: Any) -> np.ndarray:

@@ -8,6 +8,8 @@ have a leading environment axis. Simulator faults do not stop a run:
   times in a row (`TrainConfig.host_crash_limit`) stops the run with a `CmatError` naming it;
 - a worker process that dies (killed, crashed, out of memory) is started again with fresh
   environments; every environment it held reports `done` the same way.
+Every environment a pool builds, restarts included, must match the first one built
+(`check_alike`): a factory whose instances differ stops the run with a `CmatError`.
 Anything else is not a simulator fault: a `CmatError` (a malformed observation or reward, a
 non-finite value) stops the run with its one-line message, and any other exception is a bug in
 cmat and surfaces as one, from a worker process too. `counters()` gives, per environment slot,
@@ -55,22 +57,46 @@ def stack(timesteps: list[HostStep]) -> HostBatch:
     )
 
 
+def check_alike(env_id: str, reference: dict[str, Any], env: HostEnv, index: int) -> None:
+    """CmatError naming what differs where environment `index` of a pool is not built like the
+    first one (`reference`, its `HostEnv.description`)."""
+    description = env.description()
+
+    def shown(values: dict[str, Any], key: str) -> str:
+        return repr(values[key]) if key in values else "(none)"
+
+    differs = [f"{key} {shown(reference, key)} vs {shown(description, key)}"
+               for key in dict.fromkeys([*reference, *description])
+               if key not in reference or key not in description
+               or reference[key] != description[key]]
+    if differs:
+        more = f" and {len(differs) - 3} more" if len(differs) > 3 else ""
+        raise CmatError(f"{env_id}: environment {index} differs from the first one built "
+                        f"({'; '.join(differs[:3])}{more}); every instance the factory builds "
+                        f"must have the same agents and spaces")
+
+
 def concatenate(batches: list[HostBatch]) -> HostBatch:
     """Batches of several pools as one, in order."""
     return HostTimeStep(*(np.concatenate(fields) for fields in zip(*batches)))
 
 
 class InProcessPool:
-    """One environment per seed in `seeds`, stepped one after the other in this process."""
+    """One environment per seed in `seeds`, stepped one after the other in this process. Each
+    environment it builds must match `reference` (default: the first one's description;
+    `check_alike`); `first_slot` is its first environment's index in error messages."""
 
     def __init__(self, env_id: str, env_kwargs: dict[str, Any], seeds: list[int],
                  envs: list[HostEnv] | None = None, crash_limit: int = DEFAULT_CRASH_LIMIT,
-                 nonfinite: str = "error") -> None:
+                 nonfinite: str = "error", reference: dict[str, Any] | None = None,
+                 first_slot: int = 0) -> None:
         self.env_id = env_id
         self.env_kwargs = dict(env_kwargs)
         self.crash_limit = crash_limit
         self.nonfinite = nonfinite
         self.envs: list[HostEnv] = list(envs or [])
+        self.reference = reference or (self.envs[0].description() if self.envs else None)
+        self.first_slot = first_slot
         self._seeds = list(seeds)
         self.envs += [self._make(index) for index in range(len(self.envs), len(seeds))]
         self.spec: EnvSpec = self.envs[0].spec
@@ -80,8 +106,17 @@ class InProcessPool:
         """Non-finite values replaced by environments of the slot closed since."""
 
     def _make(self, index: int) -> HostEnv:
-        return make_host_env(self.env_id, seed=self._seeds[index], nonfinite=self.nonfinite,
-                             **self.env_kwargs)
+        env = make_host_env(self.env_id, seed=self._seeds[index], nonfinite=self.nonfinite,
+                            **self.env_kwargs)
+        if self.reference is None:
+            self.reference = env.description()
+        else:
+            try:
+                check_alike(self.env_id, self.reference, env, self.first_slot + index)
+            except CmatError:
+                env.close()
+                raise
+        return env
 
     def reset(self, seeds: list[int] | None = None) -> HostBatch:
         """Start an episode in every environment, environment i with `seeds[i]` (default: the
@@ -151,18 +186,22 @@ class InProcessPool:
 
 def worker_main(conn: multiprocessing.connection.Connection, env_id: str,
                 env_kwargs: dict[str, Any], seeds: list[int], crash_limit: int,
-                nonfinite: str) -> None:
-    """A worker process: an `InProcessPool` of one environment per seed serving its parent.
-    Each reply is ("ok", batch, counters), ("error", a CmatError's message) or ("bug", a
-    traceback)."""
+                nonfinite: str, reference: dict[str, Any] | None, first_slot: int) -> None:
+    """A worker process: an `InProcessPool` of one environment per seed serving its parent
+    (which first gets ("ready", the pool's reference description)). Each reply is ("ok", batch,
+    counters), ("error", a CmatError's message) or ("bug", a traceback)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and closes us
     try:
         pool = InProcessPool(env_id, env_kwargs, seeds, crash_limit=crash_limit,
-                             nonfinite=nonfinite)
-    except Exception as error:
-        conn.send(("error", f"{type(error).__name__}: {error}"))
+                             nonfinite=nonfinite, reference=reference, first_slot=first_slot)
+    except CmatError as error:
+        conn.send(("error", str(error)))
         return
-    conn.send(("ready", None))
+    except Exception as error:
+        conn.send(("error", f"{env_id}: a worker could not build its environments "
+                            f"({type(error).__name__}: {error})"))
+        return
+    conn.send(("ready", pool.reference))
     while True:
         try:
             command, data = conn.recv()
@@ -189,25 +228,30 @@ class Worker:
     """One worker process and the slice of environment slots it holds."""
 
     def __init__(self, env_id: str, env_kwargs: dict[str, Any], slots: slice,
-                 seeds: list[int], crash_limit: int, nonfinite: str) -> None:
+                 seeds: list[int], crash_limit: int, nonfinite: str,
+                 reference: dict[str, Any] | None) -> None:
         context = multiprocessing.get_context("spawn")
         self.slots = slots
         self.counters = {name: np.zeros(slots.stop - slots.start, np.int64) for name in COUNTERS}
         """The worker's last reported `InProcessPool.counters()`."""
         self.conn, child = context.Pipe()
         self.process = context.Process(
-            target=worker_main, args=(child, env_id, env_kwargs, seeds, crash_limit, nonfinite),
-            daemon=True,
+            target=worker_main, daemon=True,
+            args=(child, env_id, env_kwargs, seeds, crash_limit, nonfinite, reference,
+                  slots.start),
         )
         self.process.start()
         child.close()
         try:
             status, message = self.conn.recv()
         except (EOFError, OSError):
-            status, message = "error", f"worker exited with code {self.process.exitcode}"
+            status, message = "error", (f"{env_id}: a worker could not build its environments "
+                                        f"(worker exited with code {self.process.exitcode})")
         if status != "ready":
             self.stop()
-            raise CmatError(f"{env_id}: a worker could not build its environments ({message})")
+            raise CmatError(message)
+        self.reference: dict[str, Any] = message
+        """The description every environment of the pool must match (`check_alike`)."""
 
     def stop(self) -> None:
         """Ask the worker to close; kill it if it does not."""
@@ -221,11 +265,12 @@ class Worker:
 
 
 class WorkerPool:
-    """One environment per seed, split over `workers` processes that step their slices at once."""
+    """One environment per seed, split over `workers` processes that step their slices at once;
+    each environment must match `reference` (default: the first one built; `check_alike`)."""
 
     def __init__(self, env_id: str, env_kwargs: dict[str, Any], seeds: list[int],
                  workers: int, crash_limit: int = DEFAULT_CRASH_LIMIT,
-                 nonfinite: str = "error") -> None:
+                 nonfinite: str = "error", reference: dict[str, Any] | None = None) -> None:
         self.env_id = env_id
         self.env_kwargs = dict(env_kwargs)
         self.crash_limit = crash_limit
@@ -234,14 +279,24 @@ class WorkerPool:
         count = len(seeds)
         bounds = np.linspace(0, count, min(workers, count) + 1).round().astype(int)
         slots = [slice(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
-        self.workers = [self._worker(s, self._seeds[s]) for s in slots]
+        self.reference = reference
+        self.workers: list[Worker] = []
+        try:
+            for s in slots:
+                self.workers.append(self._worker(s, self._seeds[s]))
+        except CmatError:
+            self.close()
+            raise
         self._restarts = 0
         self._lost = {name: np.zeros(count, np.int64) for name in COUNTERS}
         """Counters of dead workers' environments, and their environments restarted."""
         self.spec: EnvSpec | None = None
 
     def _worker(self, slots: slice, seeds: list[int]) -> Worker:
-        return Worker(self.env_id, self.env_kwargs, slots, seeds, self.crash_limit, self.nonfinite)
+        worker = Worker(self.env_id, self.env_kwargs, slots, seeds, self.crash_limit,
+                        self.nonfinite, self.reference)
+        self.reference = self.reference or worker.reference
+        return worker
 
     def reset(self, seeds: list[int] | None = None) -> HostBatch:
         """Start an episode in every environment, environment i with `seeds[i]` (default: the
@@ -328,14 +383,16 @@ class WorkerPool:
 def make_pool(
     env_id: str, env_kwargs: dict[str, Any], seeds: list[int], workers: int,
     envs: list[HostEnv] | None = None, crash_limit: int = DEFAULT_CRASH_LIMIT,
-    nonfinite: str = "error",
+    nonfinite: str = "error", reference: dict[str, Any] | None = None,
 ) -> InProcessPool | WorkerPool:
     """One environment per seed, in this process (`workers` = 0) or over `workers` processes;
     `envs` are already built environments an in-process pool starts with (a worker pool closes
     them); `crash_limit` and `nonfinite` as `TrainConfig.host_crash_limit` and
-    `host_nonfinite`."""
+    `host_nonfinite`; every environment must match `reference` (default: the first of `envs`,
+    else the first one built; `check_alike`)."""
+    reference = reference or (envs[0].description() if envs else None)
     if workers <= 0:
-        return InProcessPool(env_id, env_kwargs, seeds, envs, crash_limit, nonfinite)
+        return InProcessPool(env_id, env_kwargs, seeds, envs, crash_limit, nonfinite, reference)
     for env in envs or []:
         env.close()
-    return WorkerPool(env_id, env_kwargs, seeds, workers, crash_limit, nonfinite)
+    return WorkerPool(env_id, env_kwargs, seeds, workers, crash_limit, nonfinite, reference)

@@ -90,6 +90,12 @@ class HostEnv(Protocol):
         `spec.action_low/high` (the PettingZoo adapter maps [-1, 1] onto each agent's Box)."""
         ...
 
+    def description(self) -> dict[str, Any]:
+        """What every instance built for one environment id must share (the pools compare each
+        instance they build with the first): the spec's fields, and where the adapter has them,
+        the agents and their spaces."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -165,6 +171,10 @@ class AutoReset:
         """The environment's name for agent `index`."""
         return str(index)
 
+    def description(self) -> dict[str, Any]:
+        """The spec's fields (`HostEnv.description`)."""
+        return dataclasses.asdict(self.spec)
+
     def close(self) -> None:
         """Release the simulator."""
 
@@ -205,6 +215,10 @@ class HostAgentIdWrapper:
     def step(self, actions: np.ndarray) -> HostStep:
         """Step the wrapped environment."""
         return self._with_id(self.env.step(actions))
+
+    def description(self) -> dict[str, Any]:
+        """The wrapped environment's description."""
+        return self.env.description()
 
     def close(self) -> None:
         """Close the wrapped environment."""
