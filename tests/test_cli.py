@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_rundir import lock_held_elsewhere
 
 from cmat.cli import main
 from cmat.config import validate
@@ -329,20 +330,10 @@ def test_a_run_in_training_elsewhere_or_complete_is_left_as_it_is(
     assert main(["train", "--resume", str(run_copy)]) == 0
     assert "is complete at 2,000 env steps per seed" in capsys.readouterr().err
     assert snapshot(run_copy) == before
-    holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from pathlib import Path; "
-         "from cmat.rundir import RunDir\n"
-         "with RunDir(Path(sys.argv[1])).training_lock():\n"
-         "    print('held', flush=True); time.sleep(60)", str(run_copy)],
-        stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+    with lock_held_elsewhere(run_copy) as pid:
         held = snapshot(run_copy)
         assert main(["train", "--resume", str(run_copy), "--steps", "3000"]) == 2
         line = one_error_line(capsys.readouterr().err)
-        assert f"in use by another cmat process (pid {holder.pid})" in line
+        assert f"in use by another cmat process (pid {pid})" in line
         assert main(["eval", "--run", str(run_copy), "--episodes", "2"]) == 0
         assert snapshot(run_copy) == held
-    finally:
-        holder.kill()
-        holder.wait()

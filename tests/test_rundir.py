@@ -6,6 +6,8 @@ import math
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -63,22 +65,29 @@ def test_runs_named_at_the_same_moment_get_directories_of_their_own(tmp_path: Pa
     assert all((path / "config.yaml").is_file() for path in made)
 
 
-def test_one_process_at_a_time_holds_a_runs_training_lock(tmp_path: Path) -> None:
-    run = RunDir.create(tmp_path / "run", TrainConfig())
+@contextmanager
+def lock_held_elsewhere(run: Path) -> Iterator[int]:
+    """Another process holding `run`'s training lock while the block runs; yields its pid."""
     holder = subprocess.Popen(
         [sys.executable, "-c", "import sys, time; from pathlib import Path; "
          "from cmat.rundir import RunDir\n"
          "with RunDir(Path(sys.argv[1])).training_lock():\n"
-         "    print('held', flush=True); time.sleep(60)", str(run.path)],
+         "    print('held', flush=True); time.sleep(60)", str(run)],
         stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
-        with pytest.raises(CmatError, match=rf"in use by another cmat process \(pid "
-                                            rf"{holder.pid}\)"), run.training_lock():
-            pass
+        yield holder.pid
     finally:
         holder.kill()
         holder.wait()
+
+
+def test_one_process_at_a_time_holds_a_runs_training_lock(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path / "run", TrainConfig())
+    with (lock_held_elsewhere(run.path) as pid,
+          pytest.raises(CmatError, match=rf"in use by another cmat process \(pid {pid}\)"),
+          run.training_lock()):
+        pass
     with run.training_lock():
         assert run.lock_path.read_text() == f"{os.getpid()}\n"
     assert not run.lock_path.exists()
