@@ -135,8 +135,9 @@ class Policy:
         if obs.ndim not in (2, 3) or obs.shape[-2:] != team:
             raise CmatError(f"obs must have shape {team} or (batch, *{team}) for "
                             f"{spec.env_id}, got {tuple(obs.shape)}")
-        if not bool(jnp.isfinite(obs).all()):
-            where = tuple(int(i) for i in np.argwhere(~np.isfinite(np.asarray(obs)))[0][:-1])
+        finite = np.isfinite(np.asarray(obs))
+        if not finite.all():
+            where = tuple(int(i) for i in np.argwhere(~finite)[0][:-1])
             raise CmatError(f"obs holds a NaN or infinite value (team member {where})")
         mask_shape = (*obs.shape[:-1], spec.action_dim)
         if action_mask is None:
@@ -145,8 +146,9 @@ class Policy:
         if action_mask.shape != mask_shape:
             raise CmatError(f"action_mask must have shape {mask_shape} for obs of shape "
                             f"{tuple(obs.shape)}, got {tuple(action_mask.shape)}")
-        if spec.discrete and not bool(action_mask.any(-1).all()):
-            where = tuple(int(i) for i in np.argwhere(~np.asarray(action_mask).any(-1))[0])
+        allowed = np.asarray(action_mask).any(-1)
+        if spec.discrete and not allowed.all():
+            where = tuple(int(i) for i in np.argwhere(~allowed)[0])
             raise CmatError(f"action_mask allows no action for team member {where} (a dead "
                             f"agent allows its no-op)")
         return obs, action_mask
