@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = commands.add_parser("train", help="train a new run or resume one")
     train.add_argument("--env", help="environment id (matrix:NAME, smax:SCENARIO, mpe:NAME, "
-                       "jumanji:TASK, mabrax:TASK; "
+                       "jumanji:TASK, mabrax:TASK, "
+                       "your own: jax:package.module:factory; "
                        "host: mamujoco:SCENARIO-CONF, grf:SCENARIO, "
                        "pettingzoo:package.module:factory)")
     train.add_argument("--algo", help=f"algorithm: {', '.join(algorithm_names())} (default cmat)")

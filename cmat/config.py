@@ -168,8 +168,9 @@ class TrainConfig:
     """One training run: environment, budget, seeds, network and PPO settings."""
 
     env: str = "matrix:fig1"
-    """Environment id: matrix:NAME, smax:SCENARIO, mpe:NAME, jumanji:TASK (RWARE, LBF) or
-    mabrax:TASK (in-graph), or a host environment: pettingzoo:package.module:factory,
+    """Environment id: matrix:NAME, smax:SCENARIO, mpe:NAME, jumanji:TASK (RWARE, LBF),
+    mabrax:TASK or a user's jax:package.module:factory (in-graph: a cmat MarlEnv or a JaxMARL
+    MultiAgentEnv), or a host environment: pettingzoo:package.module:factory,
     mamujoco:SCENARIO-CONF or grf:SCENARIO."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""

@@ -204,7 +204,7 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
         (["--env", "matrix:fig1", "--seeds", "0"], "seeds must be > 0, got 0"),
         (["--env", "matrix:fig1", "--algo", "nope"], "unknown algorithm 'nope'"),
         (["--env", "smax: 3m"], "unknown SMAX scenario ' 3m'"),
-        (["--env", "pettingzoo:"], "PettingZoo id 'pettingzoo:' must look like"),
+        (["--env", "pettingzoo:"], "'pettingzoo:' must look like pettingzoo:package.module"),
         (["--env", "true"], "unknown environment prefix 'true' in 'true'"),
         (["--env", "matrix:fig1", "--algo", "1.5"], "unknown algorithm '1.5'"),
         (["--env", "matrix:fig1", "--set", "ppo.lr=fast"], "invalid config"),

@@ -22,7 +22,7 @@ IDS = {
     "matrix": "matrix:penalty", "smax": "smax:2s3z", "mpe": "mpe:simple_spread",
     "mamujoco": "mamujoco:Ant-4x2", "grf": "grf:academy_counterattack_easy",
     "pettingzoo": "pettingzoo:my_pkg.envs:make_env", "jumanji": "jumanji:rware-tiny-2ag",
-    "mabrax": "mabrax:hopper_3x1",
+    "mabrax": "mabrax:hopper_3x1", "jax": "jax:my_pkg.envs:make_env",
 }
 
 
@@ -93,7 +93,7 @@ def test_an_annotated_config_reads_back_as_the_same_config_and_sources(
 
 def test_the_default_budget_of_each_suite() -> None:
     assert load_config(overrides=["env=matrix:fig1"]).total_steps == 4_000
-    for suite in ("smax", "mamujoco", "grf", "pettingzoo"):
+    for suite in ("smax", "mamujoco", "grf", "pettingzoo", "jax"):
         assert load_config(overrides=[f"env={IDS[suite]}"]).total_steps == 10_000_000
 
 

@@ -49,8 +49,9 @@ class AgentIdWrapper:
 
 
 def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
-    """Build `matrix:NAME`, `smax:SCENARIO`, `mpe:NAME`, `jumanji:TASK` or `mabrax:TASK`;
-    `agent_id` appends one-hot agent ids."""
+    """Build `matrix:NAME`, `smax:SCENARIO`, `mpe:NAME`, `jumanji:TASK`, `mabrax:TASK` or a
+    user's `jax:package.module:factory` (`cmat.envs.user_jax`, which takes any option its
+    factory takes); `agent_id` appends one-hot agent ids."""
     prefix, _, name = env_id.partition(":")
     factory: Callable[..., MarlEnv]
     if prefix == "matrix":
@@ -86,6 +87,11 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
 
         factory = partial(mabrax_envs.MabraxEnv, _choose("MABrax task", name, mabrax_envs.TASKS))
         options = mabrax_envs.OPTIONS
+    elif prefix == "jax":
+        from cmat.envs.user_jax import make_user_env
+
+        env = make_user_env(env_id, name, **kwargs)
+        return AgentIdWrapper(env) if agent_id else env
     elif prefix in HOST_PREFIXES:
         raise CmatError(
             f"{env_id} is a host environment: build it with cmat.envs.host.make_host_env "

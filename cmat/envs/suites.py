@@ -73,6 +73,8 @@ SUITES: dict[str, Suite] = {
                      "Mava's ff_mappo/ff_sable defaults for Jumanji RWARE and LBF; its budget"),
     "mabrax": Suite(MAVA_SETTINGS,
                     "Mava's ff_mappo/ff_sable defaults, which it runs MABrax with; its budget"),
+    "jax": Suite({"total_steps": PAPER_BUDGET},
+                 "a user's JAX env: the dataclass defaults; the paper's 1e7 steps"),
     "mamujoco": Suite(
         {"num_envs": 40, "rollout_length": 100, "total_steps": PAPER_BUDGET, "eval_episodes": 8,
          "env_kwargs": {"agent_id": True},

@@ -38,52 +38,17 @@ How a ParallelEnv maps onto the protocol (README, "Host environments"):
 
 from __future__ import annotations
 
-import importlib
-import sys
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
+from cmat.envs.factory import load_factory
 from cmat.envs.host.protocol import AutoReset, simulator_call
 from cmat.envs.protocol import EnvSpec
-from cmat.errors import CmatError, SuiteUnavailable
+from cmat.errors import CmatError
 
 DEFAULT_MAX_EPISODE_STEPS = 1000
 """Time limit where the env names none (`max_episode_steps`, `max_cycles` or its metadata)."""
-
-
-def load_factory(env_id: str, target: str) -> Callable[..., Any]:
-    """The callable named by `package.module:factory` (the factory may be dotted: `Class.make`)."""
-    module_name, _, attribute = target.rpartition(":")
-    if not module_name or not attribute:
-        raise CmatError(
-            f"PettingZoo id {env_id!r} must look like pettingzoo:package.module:factory"
-        )
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as error:
-        missing = error.name or ""
-        if module_name == missing or module_name.startswith(f"{missing}."):
-            raise SuiteUnavailable(
-                f"{env_id}: cannot import {module_name!r} ({error}); it must be importable from "
-                f"the Python running cmat ({sys.executable}): put its directory on PYTHONPATH "
-                f"or pip-install its package"
-            ) from None
-        raise SuiteUnavailable(f"{env_id}: cannot import {module_name!r}: it imports "
-                               f"{missing!r}, which is not installed ({error})") from None
-    except Exception as error:  # the user's module: any error while importing it
-        raise CmatError(f"{env_id}: importing {module_name!r} raised "
-                        f"{type(error).__name__}: {error}") from None
-    factory: Any = module
-    for part in attribute.split("."):
-        if not hasattr(factory, part):
-            raise CmatError(f"{env_id}: module {module_name!r} has no {attribute!r}")
-        factory = getattr(factory, part)
-    if not callable(factory):
-        raise CmatError(f"{env_id}: {attribute!r} is not callable")
-    found: Callable[..., Any] = factory
-    return found
 
 
 def make_pettingzoo_env(env_id: str, target: str, **kwargs: Any) -> PettingZooEnv:
