@@ -12,6 +12,7 @@ import dataclasses
 import json
 import math
 import os
+import shutil
 import sys
 import textwrap
 import time
@@ -281,9 +282,17 @@ def describe_env(config: TrainConfig) -> str:
 def train_into(
     trainer: Trainer, run_dir: RunDir, resume: bool, start: TrainerState | None = None
 ) -> None:
-    """`run_training`, telling the user how to continue if they interrupt it."""
+    """`run_training`, telling the user how to continue if they interrupt it. A new run that
+    stops on a CmatError before its first chunk is written (an environment that fails at its
+    first steps, a non-finite first update) leaves no directory behind: this process made it
+    and it holds nothing but the config and the initial checkpoint."""
     try:
         run_training(trainer, run_dir, resume=resume, start=start)
+    except CmatError as error:
+        if resume or run_dir.metrics_path.exists():
+            raise
+        shutil.rmtree(run_dir.path, ignore_errors=True)
+        raise CmatError(f"{error}; the new run directory {run_dir.path} was removed") from None
     except KeyboardInterrupt:
         print(f"cmat: stopped at the last checkpoint; continue with: "
               f"cmat train --resume {run_dir.path}", file=sys.stderr)

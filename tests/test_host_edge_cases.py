@@ -392,9 +392,10 @@ def test_a_malformed_return_mid_run_stops_it_from_a_worker_too(
     assert main(["train", "--env", FAULTY, "--steps", "40", "--out", str(out), "--set",
                  "num_envs=2", "rollout_length=5", "network.n_embd=8", "host_workers=1",
                  "env_kwargs.fault=obs_shape", "env_kwargs.at=3"]) == 2
-    assert "observation of agent 'q' at step 3 of an episode has shape (4,)" in error_line(
-        capsys.readouterr().err)
-    assert not (out / "metrics.csv").exists()  # nothing of the failed chunk was written
+    error = error_line(capsys.readouterr().err)
+    assert "observation of agent 'q' at step 3 of an episode has shape (4,)" in error
+    assert f"; the new run directory {out} was removed" in error
+    assert not out.exists()  # a new run that failed in its first chunk leaves nothing
 
 
 # -------------------------------------------------------------------------------- crashes

@@ -20,6 +20,7 @@ from jaxmarl.environments.spaces import Box, Discrete, MultiDiscrete
 from cmat.cli import main
 from cmat.envs import EnvSpec, TimeStep, make_env
 from cmat.errors import CmatError
+from cmat.rundir import RunDir
 
 pytestmark = pytest.mark.quick_compiles
 
@@ -29,14 +30,19 @@ HERE = __name__
 class TargetState(NamedTuple):
     targets: jax.Array
     step: jax.Array
+    total: jax.Array
+    """Steps since the environment was first reset (kept across episodes)."""
 
 
 class TargetGame:
     """Every agent sees a one-hot target and is paid for naming it: a cmat MarlEnv, written
     against the protocol. A random team earns 1/choices per step; a learned one 1."""
 
-    def __init__(self, agents: int = 3, choices: int = 3, length: int = 5) -> None:
-        self.choices, self.length = choices, length
+    def __init__(
+        self, agents: int = 3, choices: int = 3, length: int = 5, nan_after: int = 0
+    ) -> None:
+        """`nan_after` > 0: the reward is NaN from that many steps of an instance on."""
+        self.choices, self.length, self.nan_after = choices, length, nan_after
         self.spec = EnvSpec(
             env_id="jax:target", num_agents=agents, obs_dim=choices, action_dim=choices,
             discrete=True, max_episode_steps=length, has_win_rate=False,
@@ -51,16 +57,18 @@ class TargetGame:
 
     def reset(self, key: jax.Array) -> tuple[TargetState, TimeStep]:
         targets = jax.random.randint(key, (self.spec.num_agents,), 0, self.choices)
-        state = TargetState(targets, jnp.int32(0))
+        state = TargetState(targets, jnp.int32(0), jnp.int32(0))
         return state, self._timestep(state, jnp.float32(0.0), jnp.asarray(False))
 
     def step(
         self, key: jax.Array, state: TargetState, actions: jax.Array
     ) -> tuple[TargetState, TimeStep]:
         reward = jnp.mean((actions == state.targets).astype(jnp.float32))
+        if self.nan_after:
+            reward = jnp.where(state.total >= self.nan_after, jnp.nan, reward)
         done = state.step + 1 >= self.length
         targets = jax.random.randint(key, (self.spec.num_agents,), 0, self.choices)
-        next_state = TargetState(targets, jnp.where(done, 0, state.step + 1))
+        next_state = TargetState(targets, jnp.where(done, 0, state.step + 1), state.total + 1)
         return next_state, self._timestep(next_state, reward, done)
 
 
@@ -138,12 +146,34 @@ def test_a_marl_env_trains_by_id_and_is_learned(tmp_path: Path) -> None:
     code = main([
         "train", "--env", f"jax:{HERE}:target_game", "--steps", "8000", "--out", str(out),
         "--set", "num_envs=16", "rollout_length=25", "ppo.epochs=5", "ppo.lr=0.005",
-        "log_interval=2000",
+        "log_interval=5",
     ])
     assert code == 0
     rows = [row for row in csv.DictReader((out / "metrics.csv").open()) if row["kind"] == "eval"]
     returns = [float(row["episode_return"]) for row in rows]
     assert returns[-1] / 5 > 0.8, returns
+
+
+def test_a_new_run_that_fails_before_its_first_chunk_leaves_no_directory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A NaN reward from the first update on: no chunk written, the new directory removed; from
+    the third update on (chunks of two): the first chunk's rows and checkpoint kept."""
+    common = ["--algo", "mappo", "--steps", "80", "--set", "num_envs=2", "rollout_length=5",
+              "log_interval=2", "eval_episodes=1"]
+    first, later = tmp_path / "first", tmp_path / "later"
+    assert main(["train", "--env", f"jax:{HERE}:target_game", "--out", str(first), *common,
+                 "env_kwargs.nan_after=2"]) == 2
+    error = capsys.readouterr().err
+    assert "non-finite" in error and f"; the new run directory {first} was removed" in error, error
+    assert not first.exists()
+    assert main(["train", "--env", f"jax:{HERE}:target_game", "--out", str(later), *common,
+                 "env_kwargs.nan_after=12"]) == 2
+    error = capsys.readouterr().err
+    assert "non-finite" in error and "removed" not in error, error
+    rows = list(csv.DictReader((later / "metrics.csv").open()))
+    assert {int(row["env_steps"]) for row in rows} == {20}
+    assert RunDir.open(later).checkpoint_steps() == (20, True)
 
 
 def test_jaxmarl_env_is_adapted() -> None:

@@ -218,10 +218,12 @@ def stop_if_nonfinite(
     if bad.size == 0:
         return
     seed = bad[np.argmin(first[bad])]
+    kept = (f"the last good checkpoint ({updates_before} updates) is left as it was in "
+            f"{run_dir.path}" if updates_before else "no update was saved")
     raise CmatError(
         f"non-finite {NONFINITE_QUANTITIES[codes[seed] - 1]} at update "
-        f"{updates_before + first[seed] + 1} (seed {base_seed + seed}); training stopped and the "
-        f"last good checkpoint ({updates_before} updates) is left as it was in {run_dir.path}"
+        f"{updates_before + first[seed] + 1} (seed {base_seed + seed}); training stopped and "
+        f"{kept}"
     )
 
 
