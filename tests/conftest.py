@@ -36,6 +36,7 @@ LONGEST_FIRST = (
     "test_experiment.py", "test_policy.py", "test_host_envs.py", "test_sable.py",
     "test_config_command.py", "test_mat.py", "test_finetune.py", "test_training.py",
     "test_fair_comparisons.py", "test_baselines_mlp.py", "test_jumanji_envs.py",
+    "test_user_jax_envs.py",
 )
 """The test files that take longest (summed test durations of a two-worker run on the project's
 2-core machine, about 4-10 minutes of a worker each), longest first."""

@@ -139,6 +139,7 @@ def crane(**kwargs: Any) -> Crane:
     return Crane(**kwargs)
 
 
+@pytest.mark.optimised
 def test_a_marl_env_trains_by_id_and_is_learned(tmp_path: Path) -> None:
     """The CLI trains a user's protocol env in-graph; the policy learns it (the last rollouts'
     reward per step well above a random team's 1/3)."""
