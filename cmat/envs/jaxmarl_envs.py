@@ -74,8 +74,22 @@ MPE_OPTIONS = ("num_agents", "num_landmarks", "local_ratio", "max_steps", "dt")
 """Keyword arguments passed through to `SimpleSpreadMPE`."""
 
 
+def stack_padded(per_agent: dict[str, jax.Array], agents: list[str], sizes: list[int]) -> jax.Array:
+    """[n_agents, max(sizes)] float32: each agent's array flattened (`sizes[i]` entries) and
+    zero-padded to the largest."""
+    width = max(sizes)
+    return jnp.stack([
+        jnp.pad(jnp.ravel(per_agent[agent]).astype(jnp.float32), (0, width - size))
+        for agent, size in zip(agents, sizes)
+    ])
+
+
 class JaxMarlEnv:
-    """A discrete-action JaxMARL environment with every action always available and no win."""
+    """A discrete-action JaxMARL environment with every action always available and no win.
+
+    Subclasses adapt other JaxMARL environments by overriding the conversions: `_obs`,
+    `_agent_actions`, `_action_mask`, `_won`, `_alive` and `_global_state`; `reset`, `step`
+    (with its automatic reset) and `step_in_episode` stay as they are."""
 
     def __init__(
         self,
@@ -109,7 +123,7 @@ class JaxMarlEnv:
         false = jnp.asarray(False)
         return state, TimeStep(
             self._obs(obs), self._action_mask(state), jnp.float32(0.0), false, false,
-            self._alive(state), self._global_state(obs),
+            self._alive(state, None), self._global_state(obs, state),
         )
 
     def step(self, key: jax.Array, state: Any, actions: jax.Array) -> tuple[Any, TimeStep]:
@@ -121,7 +135,7 @@ class JaxMarlEnv:
         return state, timestep._replace(
             obs=jnp.where(timestep.done, first.obs, timestep.obs),
             action_mask=self._action_mask(state),
-            alive=self._alive(state),
+            alive=jnp.where(timestep.done, first.alive, timestep.alive),
             global_state=jnp.where(timestep.done, first.global_state, timestep.global_state),
         )
 
@@ -130,14 +144,19 @@ class JaxMarlEnv:
     ) -> tuple[Any, TimeStep]:
         """`step` without the automatic reset: after the last step of an episode, the state and
         observation are its terminal ones (what a renderer draws last)."""
-        agent_actions = {agent: actions[i] for i, agent in enumerate(self.env.agents)}
-        obs, next_state, rewards, dones, _ = self.env.step_env(key, state, agent_actions)
-        done = dones["__all__"]
+        obs, next_state, rewards, dones, infos = self.env.step_env(
+            key, state, self._agent_actions(actions)
+        )
+        done = jnp.asarray(dones["__all__"], bool)
         reward = jnp.mean(self._stack(rewards)).astype(jnp.float32)
         return next_state, TimeStep(
             self._obs(obs), self._action_mask(next_state), reward, done,
-            done & self._won(next_state), self._alive(next_state), self._global_state(obs),
+            done & self._won(next_state, infos), self._alive(next_state, dones),
+            self._global_state(obs, next_state),
         )
+
+    def _agent_actions(self, actions: jax.Array) -> dict[str, jax.Array]:
+        return {agent: actions[i] for i, agent in enumerate(self.env.agents)}
 
     def _stack(self, per_agent: dict[str, jax.Array]) -> jax.Array:
         return jnp.stack([per_agent[agent] for agent in self.env.agents])
@@ -148,16 +167,18 @@ class JaxMarlEnv:
     def _action_mask(self, state: Any) -> jax.Array:
         return jnp.ones((self.spec.num_agents, self.spec.action_dim), dtype=bool)
 
-    def _won(self, state: Any) -> jax.Array:
+    def _won(self, state: Any, infos: dict[str, Any]) -> jax.Array:
+        """Whether the episode that ends in `state` is won (`infos`: `step_env`'s)."""
         return jnp.asarray(False)
 
-    def _alive(self, state: Any) -> jax.Array:
+    def _alive(self, state: Any, dones: dict[str, jax.Array] | None) -> jax.Array:
+        """[n_agents] bool: which agents act in `state` (`dones`: `step_env`'s, None at reset)."""
         return jnp.ones(self.spec.num_agents, dtype=bool)
 
-    def _global_state(self, obs: dict[str, jax.Array]) -> jax.Array:
+    def _global_state(self, obs: dict[str, jax.Array], state: Any) -> jax.Array:
         if not self.has_global_state:
             return jnp.zeros(0, jnp.float32)
-        return obs["world_state"].astype(jnp.float32)
+        return jnp.ravel(obs["world_state"]).astype(jnp.float32)
 
 
 class SmaxEnv(JaxMarlEnv):
@@ -186,11 +207,11 @@ class SmaxEnv(JaxMarlEnv):
     def _action_mask(self, state: Any) -> jax.Array:
         return self._stack(self.env.get_avail_actions(state)).astype(bool)
 
-    def _alive(self, state: Any) -> jax.Array:
+    def _alive(self, state: Any, dones: dict[str, jax.Array] | None) -> jax.Array:
         alive: jax.Array = state.state.unit_alive
         return alive[: self.env.num_allies]
 
-    def _won(self, state: Any) -> jax.Array:
+    def _won(self, state: Any, infos: dict[str, Any]) -> jax.Array:
         alive, n_allies = state.state.unit_alive, self.env.num_allies
         return jnp.any(alive[:n_allies]) & ~jnp.any(alive[n_allies:])
 

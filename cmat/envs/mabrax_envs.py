@@ -29,8 +29,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from cmat.envs.jaxmarl_envs import JaxMarlEnv
-from cmat.envs.protocol import EnvSpec, TimeStep
+from cmat.envs.jaxmarl_envs import JaxMarlEnv, stack_padded
+from cmat.envs.protocol import EnvSpec
 
 # isort: split
 # After cmat.envs.jaxmarl_envs, which imports JaxMARL with its import-time prints silenced.
@@ -81,33 +81,17 @@ class MabraxEnv(JaxMarlEnv):
             state_dim=self.env.env.observation_size,
         )
 
-    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
-        """Start an episode."""
-        obs, state = self.env.reset(key)
-        false = jnp.asarray(False)
-        return state, TimeStep(
-            self._obs(obs), self._action_mask(state), jnp.float32(0.0), false, false,
-            self._alive(state), state.obs.astype(jnp.float32),
-        )
-
-    def step_in_episode(
-        self, key: jax.Array, state: Any, actions: jax.Array
-    ) -> tuple[Any, TimeStep]:
-        """`step` without the automatic reset: `actions` [n_agents, action_dim], each agent's
-        first `action_sizes[i]` entries drive its joints."""
-        agent_actions = {
+    def _agent_actions(self, actions: jax.Array) -> dict[str, jax.Array]:
+        """`actions` [n_agents, action_dim]: agent i's first `action_sizes[i]` entries drive
+        its joints."""
+        return {
             agent: actions[i, :size]
             for i, (agent, size) in enumerate(zip(self.env.agents, self.action_sizes))
         }
-        obs, next_state, rewards, dones, _ = self.env.step_env(key, state, agent_actions)
-        return next_state, TimeStep(
-            self._obs(obs), self._action_mask(next_state),
-            jnp.mean(self._stack(rewards)).astype(jnp.float32), dones["__all__"],
-            jnp.asarray(False), self._alive(next_state), next_state.obs.astype(jnp.float32),
-        )
 
     def _obs(self, per_agent: dict[str, jax.Array]) -> jax.Array:
-        return jnp.stack([
-            jnp.pad(per_agent[agent], (0, self.spec.obs_dim - size))
-            for agent, size in zip(self.env.agents, self.obs_sizes)
-        ]).astype(jnp.float32)
+        return stack_padded(per_agent, self.env.agents, self.obs_sizes)
+
+    def _global_state(self, obs: dict[str, jax.Array], state: Any) -> jax.Array:
+        brax_obs: jax.Array = state.obs
+        return brax_obs.astype(jnp.float32)

@@ -34,8 +34,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import cmat.envs.jaxmarl_envs  # noqa: F401  (imports JaxMARL quietly)
 from cmat.envs.factory import load_factory
+from cmat.envs.jaxmarl_envs import JaxMarlEnv, stack_padded
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
 from cmat.errors import CmatError
 
@@ -141,12 +141,14 @@ def _check_timestep(env_id: str, call: str, timestep: Any, spec: EnvSpec) -> Non
                             f"needs shape {shape} ({kind})")
 
 
-class JaxMarlUserEnv:
+class JaxMarlUserEnv(JaxMarlEnv):
     """A user's JaxMARL `MultiAgentEnv` behind the `MarlEnv` protocol (module docstring).
 
     `obs_sizes[i]` and `action_sizes[i]` are agent i's flat observation size and number of
     actions (or action entries) before padding; `action_low` and `action_high` are the Box
-    bounds, [n_agents, action_dim], padded with -1 and 1."""
+    bounds, [n_agents, action_dim], padded with -1 and 1. `reset`, `step` and
+    `step_in_episode` are `JaxMarlEnv`'s; the spec is built here from the traced returns rather
+    than from `JaxMarlEnv`'s equal-sized spaces."""
 
     def __init__(self, env_id: str, env: Any) -> None:
         self.env = env
@@ -171,6 +173,7 @@ class JaxMarlUserEnv:
             self.action_sizes = [int(space.n) for space in spaces]
         else:
             self.action_sizes = [math.prod(space.shape) for space in spaces]
+        self.action_shapes = [getattr(space, "shape", ()) for space in spaces]
         action_dim = max(self.action_sizes)
         low = np.full((len(self.agents), action_dim), -1.0, np.float32)
         high = np.ones((len(self.agents), action_dim), np.float32)
@@ -188,7 +191,7 @@ class JaxMarlUserEnv:
                    else jnp.zeros((len(self.agents), action_dim), jnp.float32))
         step_returns = _traced(
             env_id, "step_env(key, state, actions)",
-            lambda key: self._step_env(key, env.reset(key)[1], actions), key,
+            lambda key: env.step_env(key, env.reset(key)[1], self._agent_actions(actions)), key,
         )
         if not (isinstance(step_returns, tuple) and len(step_returns) == 5):
             raise CmatError(f"{env_id}: step_env must return (obs, state, rewards, dones, "
@@ -222,38 +225,9 @@ class JaxMarlUserEnv:
             raise CmatError(f"{env_id}: action_space({agent!r}) raised "
                             f"{type(error).__name__}: {error}") from None
 
-    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
-        """Start an episode."""
-        obs, state = self.env.reset(key)
-        false = jnp.asarray(False)
-        return state, TimeStep(
-            self._obs(obs), self._action_mask(state), jnp.float32(0.0), false, false,
-            jnp.ones(len(self.agents), bool), self._global_state(obs),
-        )
-
-    def step(self, key: jax.Array, state: Any, actions: jax.Array) -> tuple[Any, TimeStep]:
-        """Take joint `actions` ([n_agents] discrete, [n_agents, action_dim] in [-1, 1]
-        continuous); on `done`, return the next episode's first state and observation."""
-        step_key, reset_key = jax.random.split(key)
-        obs, next_state, rewards, dones, infos = self._step_env(step_key, state, actions)
-        done = jnp.asarray(dones["__all__"], bool)
-        reset_state, first = self.reset(reset_key)
-        state = jax.tree.map(lambda r, s: jnp.where(done, r, s), reset_state, next_state)
-        won = jnp.asarray(False)
-        if self.has_win:
-            won = done & jnp.any(jnp.asarray(infos["won"], bool))
-        alive = ~jnp.stack([jnp.asarray(dones[agent], bool) for agent in self.agents])
-        return state, TimeStep(
-            jnp.where(done, first.obs, self._obs(obs)),
-            self._action_mask(state),
-            jnp.mean(jnp.stack([rewards[agent] for agent in self.agents])).astype(jnp.float32),
-            done,
-            won,
-            jnp.where(done, first.alive, alive),
-            jnp.where(done, first.global_state, self._global_state(obs)),
-        )
-
-    def _step_env(self, key: jax.Array, state: Any, actions: jax.Array) -> Any:
+    def _agent_actions(self, actions: jax.Array) -> dict[str, jax.Array]:
+        """`actions` [n_agents] discrete, or [n_agents, action_dim] in [-1, 1] mapped onto each
+        agent's Box."""
         agent_actions = {}
         for i, (agent, size) in enumerate(zip(self.agents, self.action_sizes)):
             if self.discrete:
@@ -261,16 +235,11 @@ class JaxMarlUserEnv:
             else:
                 unit = (jnp.clip(actions[i, :size], -1.0, 1.0) + 1.0) / 2.0
                 low, high = self.action_low[i, :size], self.action_high[i, :size]
-                shape = self.env.action_space(agent).shape
-                agent_actions[agent] = (low + unit * (high - low)).reshape(shape)
-        return self.env.step_env(key, state, agent_actions)
+                agent_actions[agent] = (low + unit * (high - low)).reshape(self.action_shapes[i])
+        return agent_actions
 
     def _obs(self, per_agent: dict[str, jax.Array]) -> jax.Array:
-        width = max(self.obs_sizes)
-        return jnp.stack([
-            jnp.pad(jnp.ravel(per_agent[agent]).astype(jnp.float32), (0, width - size))
-            for agent, size in zip(self.agents, self.obs_sizes)
-        ])
+        return stack_padded(per_agent, self.agents, self.obs_sizes)
 
     def _action_mask(self, state: Any) -> jax.Array:
         width = max(self.action_sizes)
@@ -285,10 +254,15 @@ class JaxMarlUserEnv:
             jnp.pad(row, (0, width - size)) for row, size in zip(rows, self.action_sizes)
         ])
 
-    def _global_state(self, obs: dict[str, jax.Array]) -> jax.Array:
-        if not self.has_global_state:
-            return jnp.zeros(0, jnp.float32)
-        return jnp.ravel(obs["world_state"]).astype(jnp.float32)
+    def _won(self, state: Any, infos: dict[str, Any]) -> jax.Array:
+        if not self.has_win:
+            return jnp.asarray(False)
+        return jnp.any(jnp.asarray(infos["won"], bool))
+
+    def _alive(self, state: Any, dones: dict[str, jax.Array] | None) -> jax.Array:
+        if dones is None:
+            return jnp.ones(len(self.agents), bool)
+        return ~jnp.stack([jnp.asarray(dones[agent], bool) for agent in self.agents])
 
 
 def _overrides(env: Any, method: str) -> bool:
