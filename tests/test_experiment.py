@@ -153,6 +153,7 @@ def test_grid_writes_figures_table_and_statistics(grid: tuple[Path, bytes, str])
     assert "| task | metric | steps | CMAT | MAT | CMAT-finetune (action) |" in table
     assert "| Fig. 1 matrix game | episode return | 1,000 | " in table
     assert "| Fig. 1 matrix game | CMAT | 2 | mixture |" in table
+    assert "Fine-tuning stage `finetune_action` ran 500 env steps after its base run" in table
     assert "| CMAT > MAT |" in table and "IQM [95% CI]" in table
     assert (out / "spec.yaml").read_text() == SMOKE.read_text()
     claims = {c["key"]: c for c in json.loads((out / "results.json").read_text())["claims"]}

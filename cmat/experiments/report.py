@@ -85,7 +85,7 @@ def summarise(
                 "finals": line.scores(metric),
                 "mean": float(np.mean(scores)) if scores else None,
                 "std": float(np.std(scores)) if scores else None,
-                "steps": line.runs[0].config.total_steps if line.runs[0].config else None,
+                "steps": line.runs[0].config.budget_steps if line.runs[0].config else None,
                 "iterations": line.iterations,
                 "consensus_source": (line.runs[0].config.network.consensus_source
                                      if line.algo == "cmat" and line.runs[0].config else None),
