@@ -99,18 +99,18 @@ def test_entropy_sum_is_the_joint_policys_entropy(cmat_batch) -> None:
 
 def test_kl_early_stop_skips_the_epochs_after_the_target() -> None:
     """The early stop lives in the shared SGD loop; MAPPO's small MLPs compile fastest."""
+    base = ["env=matrix:fig1", "algo=mappo", "num_envs=4", "rollout_length=5",
+            "network.n_embd=8", "network.init_gain=1.0", "ppo.lr=0.01"]
+    setup = build_setup(load_config(overrides=base))
+    state = jax.jit(lambda key: init_state(setup, key))(jax.random.PRNGKey(0))
+    learner = state.learner
+    _, rollout = jax.jit(setup.collector.collect)(learner.params, state.envs, learner.rng)
+    _, batch = jax.jit(lambda s, r: make_batch(setup.learner, s, r))(learner, rollout)
+
     def optimised(*overrides: str):
-        config = load_config(overrides=["env=matrix:fig1", "algo=mappo", "num_envs=4",
-                                        "rollout_length=5", "network.n_embd=8",
-                                        "network.init_gain=1.0", "ppo.lr=0.01", *overrides])
-        setup = build_setup(config)
-        state = jax.jit(lambda key: init_state(setup, key))(jax.random.PRNGKey(0))
-        learner = state.learner
-        _, rollout = jax.jit(setup.collector.collect)(learner.params, state.envs, learner.rng)
-        _, batch = jax.jit(lambda s, r: make_batch(setup.learner, s, r))(learner, rollout)
-        params, _, metrics = jax.jit(
-            lambda p, o, b, k: optimise(setup.learner, p, o, b, k)
-        )(learner.params, learner.opt_state, batch, jax.random.PRNGKey(1))
+        variant = build_setup(load_config(overrides=[*base, *overrides])).learner
+        params, _, metrics = jax.jit(lambda p, o, b, k: optimise(variant, p, o, b, k))(
+            learner.params, learner.opt_state, batch, jax.random.PRNGKey(1))
         return params, metrics
 
     full, full_metrics = optimised("ppo.epochs=4")

@@ -79,14 +79,15 @@ def test_each_algorithm_gets_its_reference_defaults(algo: str) -> None:
 
 @pytest.mark.parametrize("algo, tau", [("cmat", ["ppo.target_tau=0.1"]), ("mat", [])])
 def test_target_critic_follows_tau(algo: str, tau: list[str]) -> None:
-    """φ⁻ ← τφ + (1−τ)φ⁻ after an update: τ = 1 (MAT) copies the new critic, τ = 0.1 (the
-    paper's CMAT) lags."""
+    """φ⁻ ← τφ + (1−τ)φ⁻ after an update, from a target moved away from the critic first:
+    τ = 1 (MAT) copies the new critic, τ = 0.1 (the paper's CMAT) lags."""
     config = load_config(overrides=[
         "env=matrix:fig1", f"algo={algo}", "num_envs=4", "rollout_length=5", "ppo.epochs=2", *tau,
     ])
     setup = build_setup(config)
     state = jax.jit(lambda key: init_state(setup, key))(jax.random.PRNGKey(0))
-    before = state.learner.target_params
+    before = jax.tree.map(lambda x: x + 1.0, state.learner.target_params)
+    state = state.replace(learner=state.learner.replace(target_params=before))
     after, _ = jax.jit(lambda s: trainer_lib.update_step(setup, s))(state)
     tau = config.ppo.target_tau
     expected = jax.tree.map(lambda new, old: tau * new + (1 - tau) * old, after.learner.params,
@@ -95,7 +96,8 @@ def test_target_critic_follows_tau(algo: str, tau: list[str]) -> None:
                          after.learner.params, state.learner.params)
     assert any(jax.tree.leaves(moved))
     for got, want in zip(jax.tree.leaves(after.learner.target_params), jax.tree.leaves(expected)):
-        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert int(after.learner.update_step) == 1
 
 
 # ----------------------------------------------------------------------------- initialisation

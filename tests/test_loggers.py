@@ -32,7 +32,7 @@ def test_wandb_logs_offline_into_the_run_directory(
     monkeypatch.setattr(loop.WandbWriter, "flush", recording_flush)
     out = tmp_path / "run"
     assert main(["train", "--env", "matrix:fig1", "--steps", "800", "--out", str(out),
-                 "--set", "logger=wandb", "log_interval=1"]) == 0
+                 "--set", "logger=wandb", "log_interval=1", "algo=mappo"]) == 0
 
     offline = list((out / "wandb").glob("offline-run-*/run-*.wandb"))
     assert len(offline) == 1 and offline[0].stat().st_size > 0
