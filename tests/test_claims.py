@@ -15,6 +15,7 @@ from cmat.experiments.claims import (
     NOT_SEPARABLE,
     NOT_SUPPORTED,
     SUPPORTED,
+    TIED,
     compare,
     coverage,
     judge_claims,
@@ -96,7 +97,7 @@ def test_verdicts_follow_the_scores(spec: ExperimentSpec) -> None:
     assert claims["CMAT paper"]["verdict"] == SUPPORTED
     assert claims["c"]["verdict"] == SUPPORTED
     assert claims["d"]["verdict"] == SUPPORTED
-    assert claims["e"]["verdict"] == NOT_SEPARABLE  # every method at the optimum, P = 0.5
+    assert claims["e"]["verdict"] == TIED  # every method at the optimum in every seed
     # The fine-tuning stage ties CMAT and its paper preset: best is not separable.
     assert claims["CMAT-ft"]["verdict"] == NOT_SEPARABLE
 
@@ -140,7 +141,7 @@ def test_claims_without_runs_have_no_data_and_partial_grids_say_how_many_tasks(
     claims = by_key(judge_claims(summary(grid), spec))
     assert claims["c"]["verdict"] == NO_DATA and coverage(claims["c"]) == ""
     assert claims["CMAT"]["verdict"] == SUPPORTED
-    assert coverage(claims["CMAT"]) == " (on 1 of 2 tasks)"
+    assert coverage(claims["CMAT"]) == " (on 1 of 2 tasks; 2 of 4 per-task comparisons)"
     assert claims["CMAT-ft"]["verdict"] == NO_DATA and not claims["CMAT-ft"]["comparisons"]
     nothing = judge_claims(summary({}), spec)
     assert [claim["key"] for claim in nothing] == ["a", "b", "c", "d", "e"]
@@ -163,7 +164,7 @@ def test_swapping_the_lines_mirrors_the_probability(seed: int) -> None:
 def test_the_claims_table_shows_every_claim_and_its_evidence(spec: ExperimentSpec) -> None:
     data = summary(full_grid())
     data["claims"] = judge_claims(data, spec)
-    text = "\n".join(claims_section(data, "each seed's last greedy evaluation"))
+    text = "\n".join(claims_section(data, "each seed's last greedy evaluation", 3))
     assert "## The paper's claims" in text
     for key in "abcde":
         assert f"| ({key}) " in text
@@ -181,14 +182,14 @@ def test_claims_are_judged_from_the_scores_named_and_both_verdicts_are_shown(
     data["claims"] = judge_claims(data, spec)
     data["claims_from_finals"] = judge_claims(data, spec, scores="finals")
     assert by_key(data["claims"])["CMAT"]["verdict"] == SUPPORTED
-    assert by_key(data["claims_from_finals"])["CMAT"]["verdict"] == NOT_SEPARABLE
-    text = "\n".join(claims_section(data, "each seed's mean over the last 10%"))
+    assert by_key(data["claims_from_finals"])["CMAT"]["verdict"] == TIED
+    text = "\n".join(claims_section(data, "each seed's mean over the last 10%", 3))
     assert "from this grid's scores (each seed's mean over the last 10%)" in text
     start = f"| (a) {CLAIMS['a']} (CMAT) |"
     row = next(line for line in text.splitlines() if line.startswith(start))
-    assert row.endswith(f"| {NOT_SEPARABLE} |") and f"| {SUPPORTED} | CMAT vs MAT" in row
+    assert row.endswith(f"| {TIED} |") and f"| {SUPPORTED} | CMAT vs MAT" in row
     data.pop("claims_from_finals")
-    assert "verdict from last evaluations" not in "\n".join(claims_section(data, "x"))
+    assert "verdict from last evaluations" not in "\n".join(claims_section(data, "x", 3))
 
 
 def test_a_claim_says_how_many_of_its_per_task_comparisons_are_still_missing(
@@ -200,15 +201,34 @@ def test_a_claim_says_how_many_of_its_per_task_comparisons_are_still_missing(
         del grid["smax:2s3z"][label]
     claims = by_key(judge_claims(summary(grid), spec))
     assert coverage(claims["CMAT"]) == " (3 of 4 per-task comparisons)"
-    assert coverage(claims["d"]) == " (on 1 of 2 tasks)"
+    assert coverage(claims["d"]) == " (on 1 of 2 tasks; 1 of 2 per-task comparisons)"
     assert coverage(claims["c"]) == "" and coverage(claims["e"]) == ""
+    for task in ("smax:3m", "smax:2s3z"):  # a baseline with no benchmark score yet still counts
+        grid[task].pop("MAPPO")
+    assert coverage(by_key(judge_claims(summary(grid), spec))["CMAT"]) == (
+        " (on 1 of 2 tasks; 1 of 4 per-task comparisons)")
+
+
+def test_equal_scores_in_every_seed_are_tied_and_one_differing_seed_is_not(
+    spec: ExperimentSpec,
+) -> None:
+    grid = full_grid()
+    claims = by_key(judge_claims(summary(grid), spec))
+    mat = next(c for c in claims["e"]["comparisons"] if c["y"] == "MAT")
+    assert [t["outcome"] for t in mat["per_task"]] == ["same"]
+    data = summary(grid)
+    data["claims"] = judge_claims(data, spec)
+    assert "| (e) | CMAT | MAT | matrix:fig1 | 0.50 [0.50, 0.50] | neither (equal scores) |" in (
+        "\n".join(claims_section(data, "x", 3)))
+    grid["matrix:fig1"]["MAT"] = [100.0, 100.0, 0.0]
+    assert by_key(judge_claims(summary(grid), spec))["e"]["verdict"] == NOT_SEPARABLE
 
 
 def test_a_claim_without_comparisons_says_what_it_needs(spec: ExperimentSpec) -> None:
     grid = {"matrix:fig1": full_grid()["matrix:fig1"]}
     data = summary(grid)
     data["claims"] = judge_claims(data, spec)
-    rows = {line[3]: line for line in claims_section(data, "x")
+    rows = {line[3]: line for line in claims_section(data, "x", 3)
             if line.startswith("| (") and line[6] != "|"}
     assert "CMAT vs MAT: 0.50 [0.50, 0.50]" in rows["e"] and "needs" not in rows["e"]
     assert "`consensus_source: last`" in rows["c"] and "another m" in rows["d"]

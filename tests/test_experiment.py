@@ -661,6 +661,11 @@ def test_a_variant_restricted_to_some_envs_plans_and_aggregates_only_there(
     assert list(result["lines"]) == ["CMAT", "MAT"]
     assert result["lines"]["CMAT"]["mean"] == pytest.approx(0.75)
     assert result["lines"]["MAT"]["mean"] == pytest.approx(0.25)
+    lines["smax:3m"] = [line("CMAT", "default", [1.0, 0.5]), line("MAT", "default", [0.0, 0.5])]
+    metrics["smax:3m"] = "win_rate"
+    beside_a_benchmark = aggregate(lines, metrics, spec)
+    assert beside_a_benchmark is not None and beside_a_benchmark["tasks"] == ["smax:3m"]
+    assert beside_a_benchmark["lines"]["MAT"]["mean"] == pytest.approx(0.25)
 
 
 def test_a_figure_draws_the_tasks_its_variants_are_compared_on(tmp_path: Path) -> None:

@@ -30,9 +30,12 @@ below it. Verdicts, from the per-task comparisons:
   is reliably better on any task, and m = n is reliably better than some other m on some task);
 - "not supported": some comparison finds Y reliably better (for (d): some other m);
 - "not separable at this budget": neither (at least one interval contains 0.5);
+- "tied: equal scores in every seed": every seed of both lines scored the same on every task
+  (as when every line reaches a game's optimum), so no budget would separate them;
 - "no data": no task on which the claim's lines both have scores.
 
-A verdict reached on fewer tasks than the claim covers in the spec says on how many.
+A verdict reached on fewer tasks, or fewer per-task comparisons, than the claim covers in the
+spec says on how many of each (`coverage`).
 """
 
 from __future__ import annotations
@@ -48,8 +51,9 @@ from cmat.experiments.statistics import bootstrap, improvement_probability, inte
 SEPARATION = 0.5
 """P(X > Y) of two indistinguishable lines; a decided comparison's interval excludes it."""
 
-SUPPORTED, NOT_SUPPORTED, NOT_SEPARABLE, NO_DATA = (
-    "supported", "not supported", "not separable at this budget", "no data")
+SUPPORTED, NOT_SUPPORTED, NOT_SEPARABLE, TIED, NO_DATA = (
+    "supported", "not supported", "not separable at this budget",
+    "tied: equal scores in every seed", "no data")
 
 CLAIMS = {
     "a": "CMAT beats MAT, PMAT, Triple-BERT, HAPPO and MAPPO on every task",
@@ -77,7 +81,8 @@ class TaskComparison:
     probability: float
     ci: list[float]
     outcome: str
-    """'x' (X reliably better), 'y' (Y reliably better) or 'tie' (interval contains 0.5)."""
+    """'x' (X reliably better), 'y' (Y reliably better), 'tie' (interval contains 0.5) or
+    'same' (every seed of both lines scored one value)."""
 
 
 @dataclass(frozen=True)
@@ -106,12 +111,14 @@ class Claim:
     comparisons: list[Comparison] = field(default_factory=list)
     tasks_in_spec: int = 0
     comparisons_in_spec: int = 0
-    """Per-task comparisons the spec plans for the lines compared: for each comparison, the
-    spec's tasks that both lines' variants run on."""
+    """Per-task comparisons the spec plans for the claim: for each line X is compared with
+    (with scores yet or not), the spec's tasks that both lines' variants run on."""
     verdict: str = NO_DATA
 
 
-def outcome(ci: list[float]) -> str:
+def outcome(ci: list[float], xs: np.ndarray, ys: np.ndarray) -> str:
+    if np.all(xs == xs.flat[0]) and np.all(ys == xs.flat[0]):
+        return "same"
     if ci[0] > SEPARATION:
         return "x"
     if ci[1] < SEPARATION:
@@ -132,7 +139,7 @@ def compare(x: str, y: str, scores: dict[str, dict[str, list[float]]], reps: int
         xs, ys = (np.array(scores[task][label])[:, None] for label in (x, y))
         point = float(improvement_probability(xs, ys))
         ci = interval(improvement_probability(bootstrap(xs, reps, rng), bootstrap(ys, reps, rng)))
-        per_task.append(TaskComparison(task, point, ci, outcome(ci)))
+        per_task.append(TaskComparison(task, point, ci, outcome(ci, xs, ys)))
     runs = {label: min(len(scores[t][label]) for t in tasks) for label in (x, y)}
     matrix = {label: np.array([[scores[t][label][i] for t in tasks] for i in range(runs[label])])
               for label in (x, y)}
@@ -154,6 +161,8 @@ def verdict(comparisons: list[Comparison], robust_default: bool = False) -> str:
         return NO_DATA
     if "y" in outcomes:
         return NOT_SUPPORTED
+    if all(o == "same" for o in outcomes):
+        return TIED
     if robust_default:
         return SUPPORTED if "x" in outcomes else NOT_SEPARABLE
     return SUPPORTED if all(o == "x" for o in outcomes) else NOT_SEPARABLE
@@ -209,19 +218,18 @@ def judge_claims(
         return sum(1 for t in spec_tasks if t.startswith("matrix:") == in_game
                    and all(spec.variant(v).covers(t) for v in variant_names))
 
-    def planned(x: str, comparisons: list[Comparison], in_game: bool = False) -> int:
-        return sum(covered({lines[x]["variant"], lines[c.y]["variant"]}, in_game)
-                   for c in comparisons)
+    def planned(x: str, ys: list[str], in_game: bool = False) -> int:
+        return sum(covered({lines[x]["variant"], lines[y]["variant"]}, in_game) for y in ys)
 
     claims: list[Claim] = []
     for label in cmat_lines:
-        claim = Claim("a", f"{CLAIMS['a']} ({label})", pairs(label, baselines, benchmark),
-                      covered({lines[label]["variant"]}, False))
-        claims.append(claim)
+        claims.append(Claim("a", f"{CLAIMS['a']} ({label})", pairs(label, baselines, benchmark),
+                            covered({lines[label]["variant"]}, False),
+                            planned(label, baselines)))
     for label in stages:
         others = [o for o in lines if o != label and main(o) and not stage(o)]
         claims.append(Claim("b", f"{CLAIMS['b']} ({label})", pairs(label, others, benchmark),
-                            covered({lines[label]["variant"]}, False)))
+                            covered({lines[label]["variant"]}, False), planned(label, others)))
     seen_stages = {lines[label]["variant"] for label in stages}
     for variant in spec.variants:
         if variant.finetune is not None and variant.name not in seen_stages:
@@ -239,33 +247,34 @@ def judge_claims(
                    and line["consensus_source"] == ref_line["consensus_source"]
                    and not stage(label) and not same_m(label)]
         claims.append(Claim("c", CLAIMS["c"], pairs(reference, last, benchmark),
-                            covered({lines[o]["variant"] for o in last}, False)))
+                            covered({lines[o]["variant"] for o in last}, False),
+                            planned(reference, last)))
         claims.append(Claim("d", CLAIMS["d"], pairs(reference, other_m, benchmark),
-                            covered({lines[o]["variant"] for o in other_m}, False)))
+                            covered({lines[o]["variant"] for o in other_m}, False),
+                            planned(reference, other_m)))
         mat = [label for label, line in lines.items()
                if line["algo"] == "mat" and line["variant"] == "default"]
-        claims.append(Claim("e", CLAIMS["e"], pairs(reference, mat, game), covered(set(), True)))
+        claims.append(Claim("e", CLAIMS["e"], pairs(reference, mat, game), covered(set(), True),
+                            planned(reference, mat, in_game=True)))
     claims += [Claim(key, statement) for key, statement in CLAIMS.items()
                if not any(claim.key == key for claim in claims)]
     claims.sort(key=lambda claim: claim.key)
     for claim in claims:
         claim.verdict = verdict(claim.comparisons, robust_default=claim.key == "d")
-        if claim.comparisons:
-            claim.comparisons_in_spec = planned(claim.comparisons[0].x, claim.comparisons,
-                                                in_game=claim.key == "e")
     return [asdict(claim) for claim in claims]
 
 
 def coverage(claim: dict[str, Any]) -> str:
-    """' (on k of K tasks)' when the claim's comparisons cover fewer tasks than the spec has,
-    else ' (k of K per-task comparisons)' when some comparison the spec plans on those tasks
-    is still missing (a line's run not yet complete there)."""
+    """' (on k of K tasks; d of D per-task comparisons)', each part only where the claim's
+    comparisons cover fewer tasks than the spec has or fewer of the per-task comparisons the
+    spec plans (a line's run not yet complete there); '' for a complete claim or no data."""
     if claim["verdict"] == NO_DATA:
         return ""
+    parts = []
     tasks = {t for c in claim["comparisons"] for t in c["tasks"]}
     if len(tasks) < claim["tasks_in_spec"]:
-        return f" (on {len(tasks)} of {claim['tasks_in_spec']} tasks)"
+        parts.append(f"on {len(tasks)} of {claim['tasks_in_spec']} tasks")
     done = sum(len(c["tasks"]) for c in claim["comparisons"])
     if done < claim.get("comparisons_in_spec", 0):
-        return f" ({done} of {claim['comparisons_in_spec']} per-task comparisons)"
-    return ""
+        parts.append(f"{done} of {claim['comparisons_in_spec']} per-task comparisons")
+    return f" ({'; '.join(parts)})" if parts else ""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from cmat.experiments.claims import EVIDENCE_NEEDED, NO_DATA, SEPARATION, coverage
@@ -12,8 +13,9 @@ from cmat.experiments.plan import Plan
 def markdown(plan: Plan, summary: dict[str, Any]) -> str:
     out = [f"# Experiment `{plan.spec.name}`", "",
            (f"Spec: `spec.yaml` (from `{plan.spec.path}`). Score: {score_text(plan)}, mean ± "
-            f"std over seeds (n = {plan.spec.seeds} unless marked). Metric: win rate where the "
-            f"environment defines one, else episode return."), ""]
+            f"std (population std, ddof = 0) over seeds (n = {plan.spec.seeds} unless "
+            f"marked). Metric: win rate where the environment defines one, else episode "
+            f"return."), ""]
     main = labels_of(summary, "main")
     if main:
         out += ["## Scores", "",
@@ -50,7 +52,8 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
                    "common task.")
     else:
         out += [(f"Lines of the variants that run on every task, over {len(agg['tasks'])} "
-                 f"task(s) ({', '.join(agg['tasks'])}) where each of them has scores; "
+                 f"task(s) ({', '.join(agg['tasks'])}) where each of them has scores (the "
+                 f"`matrix:` games only when no other task qualifies); "
                  f"win rates as they are, returns min-max normalised per "
                  f"task; stratified bootstrap over seeds within tasks, {agg['reps']} "
                  f"replications, 95% percentile intervals (rliable's IQM and probability of "
@@ -64,7 +67,7 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
         for pair, value in agg["improvement"].items():
             out.append(f"| {pair} | {value['probability']:.3f} "
                        f"[{value['ci'][0]:.3f}, {value['ci'][1]:.3f}] |")
-    out += claims_section(summary, score_text(plan))
+    out += claims_section(summary, score_text(plan), plan.spec.seeds)
     published = [(task, ref) for task in summary["tasks"] for ref in task["published"]]
     out += ["", "## Published reference figures (context, not this project's runs)", ""]
     if published:
@@ -97,7 +100,10 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
         out += ["Training wall time of the runs on disk (each run's sessions.jsonl; runs "
                 "without that record are not counted): " + "; ".join(
                     f"{entry['hours']:.1f} h on {where} over {entry['runs']:.0f} runs"
-                    for where, entry in compute.items()) + ".", ""]
+                    for where, entry in compute.items())
+                + (f" ({sum(1 for run in summary['runs'] if run['seconds'])} distinct runs: a "
+                   f"run that trained in more than one place counts in each)"
+                   if len(compute) > 1 else "") + ".", ""]
     out += ["| run | found | this time | trained |", "|---|---|---|---|"]
     for run in summary["runs"]:
         found = run["status"] + (f": {run['note']}" if run["note"] else "")
@@ -132,7 +138,7 @@ def score_text(plan: Plan) -> str:
             f"(`score_window`; its last evaluation included)")
 
 
-def claims_section(summary: dict[str, Any], score: str) -> list[str]:
+def claims_section(summary: dict[str, Any], score: str, seeds: int) -> list[str]:
     """The claims table (one row per claim; with a score window, also the verdict from the
     last evaluations alone) and the per-task comparisons behind it."""
     claims = summary.get("claims") or []
@@ -149,7 +155,14 @@ def claims_section(summary: dict[str, Any], score: str) -> list[str]:
             f"{SEPARATION}. Supported: X reliably better in every per-task comparison the claim "
             f"needs (for (d): no other m reliably better anywhere, and m = n reliably better "
             f"than some other m somewhere). Not supported: the other line reliably better in "
-            f"some comparison. Not separable at this budget: otherwise. Fine-tuning stages ran "
+            f"some comparison. Tied: every seed of both lines scored the same on every task. "
+            f"Not separable at this budget: otherwise. A verdict resting on fewer tasks or "
+            f"per-task comparisons than the spec plans says how many. With {seeds} seeds a "
+            f"side the bootstrap interval is [1.00, 1.00] as soon as every seed of X beats "
+            f"every seed of Y, while an exact one-sided Mann-Whitney test of that outcome gives "
+            f"p = {1 / math.comb(2 * seeds, seeds):.2g}: read a decided comparison with that "
+            f"in mind. "
+            f"Fine-tuning stages ran "
             f"their own steps after their base run. Tasks with `matrix:` ids are claim (e)'s."
             + (" The last column judges each claim the same way from each seed's last greedy "
                "evaluation alone, to show how much the verdict owes to the score's definition."
@@ -175,7 +188,7 @@ def claims_section(summary: dict[str, Any], score: str) -> list[str]:
     if rows:
         out += ["", "| claim | X | Y | task | P(X > Y) [95% CI] | reliably better |",
                 "|---|---|---|---|---|---|"]
-        decided = {"x": "X", "y": "Y", "tie": "neither"}
+        decided = {"x": "X", "y": "Y", "tie": "neither", "same": "neither (equal scores)"}
         for claim, c, t in rows:
             task = labels.get(t["task"], t["task"])
             out.append(f"| ({claim['key']}) | {c['x']} | {c['y']} | {task}"
@@ -188,5 +201,6 @@ def claims_section(summary: dict[str, Any], score: str) -> list[str]:
 
 
 def tally(comparison: dict[str, Any]) -> str:
-    counts = [sum(t["outcome"] == o for t in comparison["per_task"]) for o in ("x", "y", "tie")]
+    counts = [sum(t["outcome"] in o for t in comparison["per_task"])
+              for o in (("x",), ("y",), ("tie", "same"))]
     return " / ".join(str(n) for n in counts)

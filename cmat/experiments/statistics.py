@@ -51,8 +51,10 @@ def aggregate(
     lines: dict[str, list[Line]], metrics: dict[str, str], spec: ExperimentSpec
 ) -> dict[str, Any] | None:
     """IQM and mean with CIs per main line of a variant that runs on every environment, and
-    P(first line > each other), over the tasks where every such line has scores; None
-    when no task has two lines to compare."""
+    P(first line > each other), over the tasks where every such line has scores, leaving out
+    the `matrix:` games where another task qualifies (claim (e)'s games, where every line may
+    score the optimum in every seed, would add a constant to every line); None when no task has
+    two lines to compare."""
     everywhere = {v.name for v in spec.variants if v.envs is None}
     labels: list[str] = []
     for task_lines in lines.values():
@@ -65,6 +67,9 @@ def aggregate(
                   for line in task_lines if line.label in labels}
         if all(scores.get(label) for label in labels):
             per_task[env_id] = scores
+    benchmark = {env_id: scores for env_id, scores in per_task.items()
+                 if not env_id.startswith("matrix:")}
+    per_task = benchmark or per_task
     if not per_task or len(labels) < 2:
         return None
     tasks = list(per_task)
