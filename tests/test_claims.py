@@ -20,7 +20,8 @@ from cmat.experiments.claims import (
     coverage,
     judge_claims,
 )
-from cmat.experiments.markdown import claims_section
+from cmat.experiments.markdown import claims_section, compute_text
+from cmat.experiments.report import compute_totals
 from cmat.experiments.spec import ExperimentSpec, load_spec
 
 TASKS = ("matrix:fig1", "smax:3m", "smax:2s3z")
@@ -234,3 +235,16 @@ def test_a_claim_without_comparisons_says_what_it_needs(spec: ExperimentSpec) ->
     assert "`consensus_source: last`" in rows["c"] and "another m" in rows["d"]
     for key in "abcd":
         assert f"| {NO_DATA} | none: needs complete runs of" in rows[key]
+
+
+def test_the_compute_line_counts_a_run_that_trained_in_two_places_once_overall() -> None:
+    runs = [{"seconds": {"2 cores": 3600.0, "1 core": 1800.0}},
+            {"seconds": {"1 core": 7200.0}}, {"seconds": {}}]
+    text = compute_text({"runs": runs, "compute": compute_totals(runs)})
+    assert "1.0 h on 2 cores over 1 runs; 2.5 h on 1 core over 2 runs" in text
+    assert text.endswith("(2 distinct runs: a run that trained in more than one place counts "
+                         "in each).")
+    one_place = runs[1:]
+    assert "distinct" not in compute_text({"runs": one_place,
+                                           "compute": compute_totals(one_place)})
+    assert compute_text({"runs": [], "compute": {}}) == ""

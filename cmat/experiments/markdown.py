@@ -95,15 +95,9 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
             out.append(f"| {row['suite']} ({row['tasks']} tasks) | {row['algorithm']} | "
                        f"{row['value']:.3g} | {row['env_steps']:.0e} | {row['source']}{note} |")
     out += ["", "## Runs", ""]
-    compute = summary.get("compute") or {}
+    compute = compute_text(summary)
     if compute:
-        out += ["Training wall time of the runs on disk (each run's sessions.jsonl; runs "
-                "without that record are not counted): " + "; ".join(
-                    f"{entry['hours']:.1f} h on {where} over {entry['runs']:.0f} runs"
-                    for where, entry in compute.items())
-                + (f" ({sum(1 for run in summary['runs'] if run['seconds'])} distinct runs: a "
-                   f"run that trained in more than one place counts in each)"
-                   if len(compute) > 1 else "") + ".", ""]
+        out += [compute, ""]
     out += ["| run | found | this time | trained |", "|---|---|---|---|"]
     for run in summary["runs"]:
         found = run["status"] + (f": {run['note']}" if run["note"] else "")
@@ -111,6 +105,21 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
                             for where, seconds in run.get("seconds", {}).items())
         out.append(f"| {run['run']} | {found} | {run['outcome'] or '—'} | {trained or '—'} |")
     return "\n".join(out) + "\n"
+
+
+def compute_text(summary: dict[str, Any]) -> str:
+    """The runs' training wall time per place, and how many distinct runs it covers where a
+    run trained in more than one place; '' when no run has that record."""
+    compute = summary.get("compute") or {}
+    if not compute:
+        return ""
+    distinct = sum(1 for run in summary["runs"] if run["seconds"])
+    return ("Training wall time of the runs on disk (each run's sessions.jsonl; runs without "
+            "that record are not counted): " + "; ".join(
+                f"{entry['hours']:.1f} h on {where} over {entry['runs']:.0f} runs"
+                for where, entry in compute.items())
+            + (f" ({distinct} distinct runs: a run that trained in more than one place counts "
+               f"in each)" if len(compute) > 1 else "") + ".")
 
 
 def labels_of(summary: dict[str, Any], figure: str) -> list[str]:
