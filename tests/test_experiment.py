@@ -80,8 +80,10 @@ def group_alive(group: int) -> bool:
 def grid(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, str]:
     """The smoke grid killed (SIGKILL to the experiment process alone) once its first run is
     complete and its second half done, then run again to the end. The process group is stopped
-    before each look at the checkpoint and stays stopped through the kill, so no run can move
-    on between the look and the kill."""
+    before each look into the checkpoint and stays stopped through the kill, so no run can move
+    on between the look and the kill; until the run's metrics.csv exists (its first rows are the
+    half-way chunk's, written just before that chunk's checkpoint) the runs go unstopped,
+    watched by `stat` alone."""
     out = tmp_path_factory.mktemp("experiment") / "smoke"
     log = out.parent / "killed.log"
     with log.open("w") as file:
@@ -91,6 +93,10 @@ def grid(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, str]:
         )
     try:
         deadline = time.monotonic() + 900
+        while not (out / MAT_RUN / "metrics.csv").exists():
+            assert process.poll() is None, log.read_text()
+            assert time.monotonic() < deadline, log.read_text()
+            time.sleep(0.005)
         while True:
             os.killpg(process.pid, signal.SIGSTOP)
             time.sleep(0.01)  # a process running on the other core stops within this
@@ -541,17 +547,19 @@ def test_only_runs_the_matching_runs_and_reports_every_complete_one(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = tmp_path / "two.yaml"
-    path.write_text(yaml.safe_dump({**SPEC, "steps": 400, "algos": ["cmat", "mat"]}))
+    smoke = yaml.safe_load(SMOKE.read_text())  # the smoke MAT program: cached after `grid`
+    path.write_text(yaml.safe_dump({**SPEC, "steps": 500, "algos": ["cmat", "mat"],
+                                    "seeds": smoke["seeds"], "set": smoke["set"]}))
     out = tmp_path / "out"
     assert main(["experiment", str(path), "--out", str(out), "--only", "*/mat-*",
                  "--parallel", "2"]) == 0
-    assert "--only */mat-*: 1 of 2 runs: matrix_fig1/default/mat-s0" in capsys.readouterr().out
-    assert checkpoint_steps(out / "runs/matrix_fig1/default/mat-s0") == 400
+    assert "--only */mat-*: 1 of 2 runs: matrix_fig1/default/mat-s0-1" in capsys.readouterr().out
+    assert checkpoint_steps(out / "runs/matrix_fig1/default/mat-s0-1") == 500
     cores = len(os.sched_getaffinity(0))
-    sessions = RunDir(out / "runs/matrix_fig1/default/mat-s0").sessions()
+    sessions = RunDir(out / "runs/matrix_fig1/default/mat-s0-1").sessions()
     first_group = execute.core_groups(2)[0] if cores >= 2 else range(cores)
     assert [s["cpus"] for s in sessions] == [len(first_group)]
-    assert not (out / "runs/matrix_fig1/default/cmat-s0").exists()
+    assert not (out / "runs/matrix_fig1/default/cmat-s0-1").exists()
     assert "| MAT |" in (out / "results.md").read_text()
     assert main(["experiment", str(path), "--out", str(out), "--only", "smax_3m/*"]) == 2
     assert "--only 'smax_3m/*' matches no run of the grid" in one_error_line(
