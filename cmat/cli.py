@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 from cmat.algorithms import algorithm_class, algorithm_names
 from cmat.config import (
     FINETUNE_MODES,
+    INT32_MAX,
     NESTED_FIELDS,
     TrainConfig,
     field_docs,
@@ -303,8 +304,8 @@ def train_into(
 def eval_command(args: argparse.Namespace) -> None:
     run_dir = RunDir.open(args.run)
     config = run_dir.config()
-    if args.episodes is not None and args.episodes <= 0:
-        raise CmatError(f"--episodes must be > 0, got {args.episodes}")
+    if args.episodes is not None and not 0 < args.episodes <= INT32_MAX:
+        raise CmatError(f"--episodes must be in [1, {INT32_MAX:,}], got {args.episodes:,}")
     if args.iterations is not None and config.algo != "cmat":
         raise CmatError(f"--iterations applies to cmat runs only; {run_dir.path} is a "
                         f"{config.algo!r} run")

@@ -241,6 +241,10 @@ class TrainConfig:
         return self.log_interval or max(1, self.num_updates // 20)
 
 
+INT32_MAX = 2**31 - 1
+"""The largest count a program can hold: JAX's integers are int32 unless x64 is enabled."""
+
+
 def validate(config: TrainConfig) -> TrainConfig:
     """Reject values the trainer cannot run with, naming the field. What depends on the
     algorithm (its name, its fine-tuning stages, its options) is checked by
@@ -310,11 +314,18 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"got {ppo.entropy_reduction!r}"),
         (ppo.target_kl is None or (math.isfinite(ppo.target_kl) and ppo.target_kl > 0),
          f"ppo.target_kl must be > 0 or null, got {ppo.target_kl}"),
+        (config.budget_steps <= INT32_MAX and config.steps_per_update * config.seeds <= INT32_MAX,
+         f"steps ({config.total_steps:,} per seed) and num_envs * rollout_length * seeds "
+         f"({config.steps_per_update * config.seeds:,}) must each be at most {INT32_MAX:,}: "
+         f"the trainer counts env steps in int32"),
     ]
     for ok, message in checks:
         if not ok:
             raise CmatError(f"invalid config: {message}")
     for name, value in numeric_fields(config):
+        if isinstance(value, int) and not isinstance(value, bool) and abs(value) > INT32_MAX:
+            raise CmatError(f"invalid config: {name} must be within ±{INT32_MAX:,} (JAX "
+                            f"computes in int32), got {value:,}")
         if isinstance(value, float) and not math.isfinite(value):
             raise CmatError(f"invalid config: {name} must be a finite number, got {value}")
         low, high, closed_low = NUMERIC_RANGES.get(name, (None, None, True))

@@ -27,7 +27,7 @@ from cmat.config import (
     validate,
 )
 from cmat.envs.suites import SUITES
-from cmat.errors import CmatError
+from cmat.errors import CmatError, read_text
 
 
 def load_config(
@@ -56,7 +56,7 @@ def resolve_config(
     layers: list[tuple[str, Any]] = []
     try:
         if yaml_file is not None:
-            text = Path(yaml_file).read_text()
+            text = read_text(yaml_file, "config file")
             loaded = yaml.safe_load(text) or {}
             if not isinstance(loaded, dict):
                 raise CmatError(f"config file {yaml_file} must hold a mapping of keys to values")

@@ -50,7 +50,7 @@ from cmat.config import (
     to_yaml,
     written_by,
 )
-from cmat.errors import CmatError
+from cmat.errors import CmatError, read_text
 
 LOSS_COLUMNS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac")
 DIAGNOSTIC_COLUMNS = (
@@ -201,7 +201,7 @@ class RunDir:
     def config(self) -> TrainConfig:
         """The run's config. Raises CmatError for one this version cannot read, naming the
         version that wrote it."""
-        text = self.config_path.read_text()
+        text = read_text(self.config_path, "run config")
         try:
             return check_config(from_yaml(text))
         except CmatError as error:

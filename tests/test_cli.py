@@ -209,6 +209,17 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
         (["--env", "matrix:fig1", "--algo", "1.5"], "unknown algorithm '1.5'"),
         (["--env", "matrix:fig1", "--set", "ppo.lr=fast"], "invalid config"),
         (["--config", "missing.yaml"], "config file not found: missing.yaml"),
+        (["--env", "matrix:fig1", "--steps", str(10**20)],
+         "must each be at most 2,147,483,647: the trainer counts env steps in int32"),
+        (["--env", "matrix:fig1", "--set", "num_envs=3000000", "rollout_length=1000"],
+         "num_envs * rollout_length * seeds (3,000,000,000)"),
+        (["--env", "matrix:fig1", "--seeds", "2", "--set", "num_envs=1100000000"],
+         "num_envs * rollout_length * seeds (55,000,000,000)"),
+        (["--env", "matrix:fig1", "--set", "eval_episodes=4294967296"],
+         "eval_episodes must be within ±2,147,483,647 (JAX computes in int32), "
+         "got 4,294,967,296"),
+        (["--env", "matrix:fig1", "--set", "network.n_embd=8589934592"],
+         "network.n_embd must be within ±2,147,483,647"),
     ],
 )
 def test_bad_training_input_is_one_error_line(
@@ -230,6 +241,20 @@ def test_bad_yaml_is_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert ("invalid config: ppo.epochs: expected an integer, got 'abc'"
             in one_error_line(capsys.readouterr().err))
     assert not (tmp_path / "out").exists()
+
+
+def test_files_that_are_not_utf8_text_are_one_error_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"ppo:\n  lr: 0.001\n\xff\xfe\x00")
+    assert main(["train", "--config", str(binary), "--out", str(tmp_path / "out")]) == 2
+    assert (f"config file {binary} is not UTF-8 text (byte 17)"
+            in one_error_line(capsys.readouterr().err))
+    assert main(["experiment", str(binary), "--out", str(tmp_path / "grid")]) == 2
+    assert (f"experiment spec {binary} is not UTF-8 text (byte 17)"
+            in one_error_line(capsys.readouterr().err))
+    assert not (tmp_path / "out").exists() and not (tmp_path / "grid").exists()
 
 
 @pytest.mark.parametrize("argv", [[], ["fly"], ["train", "--steps", "many"], ["plot", "x"]])
@@ -261,6 +286,10 @@ def test_missing_run_or_checkpoint_is_reported(
 ) -> None:
     assert main(["eval", "--run", str(tmp_path)]) == 2
     assert "holds no run" in one_error_line(capsys.readouterr().err)
+    for episodes in (0, 2**31, 10**20):
+        assert main(["eval", "--run", str(trained), "--episodes", str(episodes)]) == 2
+        assert (f"--episodes must be in [1, 2,147,483,647], got {episodes:,}"
+                in one_error_line(capsys.readouterr().err))
     shutil.copy(trained / "config.yaml", tmp_path / "config.yaml")
     for argv in (["eval", "--run", str(tmp_path)], ["train", "--resume", str(tmp_path)]):
         assert main(argv) == 2
