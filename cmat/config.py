@@ -292,13 +292,14 @@ def validate(config: TrainConfig) -> TrainConfig:
                                          and config.rollout_length % net.retention_chunk == 0),
          f"network.retention_chunk ({net.retention_chunk}) must divide rollout_length "
          f"({config.rollout_length})"),
-        (not net.recurrent or config.num_envs % ppo.num_minibatches == 0,
+        (not net.recurrent or ppo.num_minibatches <= 0
+         or config.num_envs % ppo.num_minibatches == 0,
          f"with network.recurrent, minibatches are whole sequences: num_envs "
          f"({config.num_envs}) must be divisible by ppo.num_minibatches "
          f"({ppo.num_minibatches})"),
         (ppo.epochs > 0, f"ppo.epochs must be > 0, got {ppo.epochs}"),
         (ppo.num_minibatches > 0, f"ppo.num_minibatches must be > 0, got {ppo.num_minibatches}"),
-        (config.steps_per_update % ppo.num_minibatches == 0,
+        (ppo.num_minibatches <= 0 or config.steps_per_update % ppo.num_minibatches == 0,
          f"num_envs * rollout_length ({config.steps_per_update}) must be divisible by "
          f"ppo.num_minibatches ({ppo.num_minibatches})"),
         (ppo.minibatch_chunks > 0,
@@ -314,7 +315,8 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"got {ppo.entropy_reduction!r}"),
         (ppo.target_kl is None or (math.isfinite(ppo.target_kl) and ppo.target_kl > 0),
          f"ppo.target_kl must be > 0 or null, got {ppo.target_kl}"),
-        (config.budget_steps <= INT32_MAX and config.steps_per_update * config.seeds <= INT32_MAX,
+        (config.steps_per_update <= 0 or config.total_steps <= 0
+         or max(config.budget_steps, config.steps_per_update * config.seeds) <= INT32_MAX,
          f"steps ({config.total_steps:,} per seed) and num_envs * rollout_length * seeds "
          f"({config.steps_per_update * config.seeds:,}) must each be at most {INT32_MAX:,}: "
          f"the trainer counts env steps in int32"),
