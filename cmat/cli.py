@@ -18,7 +18,7 @@ import textwrap
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 from cmat.algorithms import algorithm_class, algorithm_names
 from cmat.config import (
@@ -41,8 +41,16 @@ from cmat.runners.loop import run_training
 if TYPE_CHECKING:
     from cmat.runners.base import Trainer, TrainerState
 
+class Parser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line, as every other error of the CLI, pointing
+    to the command's --help instead of printing the usage first (exit code 2, as argparse's)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"cmat: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="cmat", description="Consensus Multi-Agent Transformer: train, evaluate, plot."
     )
     commands = parser.add_subparsers(dest="command", required=True)
