@@ -60,7 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "jumanji:TASK, mabrax:TASK, "
                        "your own: jax:package.module:factory; "
                        "host: mamujoco:SCENARIO-CONF, grf:SCENARIO, "
-                       "pettingzoo:package.module:factory)")
+                       "pettingzoo:package.module:factory; default matrix:fig1, the "
+                       "paper's Fig. 1 game, which trains in seconds)")
     train.add_argument("--algo", help=f"algorithm: {', '.join(algorithm_names())} (default cmat)")
     train.add_argument("--steps", type=int, help="environment steps per seed (total_steps)")
     train.add_argument("--seeds", type=int, help="independent seeds trained at once")

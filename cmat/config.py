@@ -492,10 +492,34 @@ def written_by(text: str) -> str | None:
     return first.removeprefix(VERSION_HEADER).strip() if first.startswith(VERSION_HEADER) else None
 
 
+class UniqueKeyLoader(yaml.SafeLoader):  # type: ignore[misc]  # yaml has no stubs here
+    """PyYAML's safe loader, except that a key given twice in one mapping is an error (PyYAML
+    keeps the last value silently, so a config or spec would lose the first setting unseen)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} appears twice in one mapping (line "
+                    f"{key_node.start_mark.line + 1})", key_node.start_mark)
+            seen.add(key)
+        mapping: dict[Any, Any] = super().construct_mapping(node, deep=deep)
+        return mapping
+
+
+def load_yaml(text: str) -> Any:
+    """Parse YAML `text` with `UniqueKeyLoader`; raises yaml.YAMLError."""
+    return yaml.load(text, Loader=UniqueKeyLoader)
+
+
 def from_yaml(text: str) -> TrainConfig:
     """Read a resolved config written by `to_yaml` (a run directory's config.yaml)."""
     try:
-        loaded = yaml.safe_load(text)
+        loaded = load_yaml(text)
         config = OmegaConf.to_object(
             OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.create(loaded))
         )

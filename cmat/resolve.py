@@ -23,6 +23,7 @@ from cmat.config import (
     TrainConfig,
     field_names,
     layer_fields,
+    load_yaml,
     one_line,
     validate,
 )
@@ -57,7 +58,7 @@ def resolve_config(
     try:
         if yaml_file is not None:
             text = read_text(yaml_file, "config file")
-            loaded = yaml.safe_load(text) or {}
+            loaded = load_yaml(text) or {}
             if not isinstance(loaded, dict):
                 raise CmatError(f"config file {yaml_file} must hold a mapping of keys to values")
             layers.append((f"file {yaml_file}", OmegaConf.create(loaded)))

@@ -352,10 +352,32 @@ class RunDir:
             return next(csv.reader(file), [])
 
     def read_metrics(self) -> list[dict[str, str]]:
+        """The rows of metrics.csv as strings (empty if there is none), after checking that the
+        header names kind, seed and env_steps and that each row has a `kind` of train or eval,
+        whole-number `seed` and `env_steps`, and a number (`nan` included) in every other
+        non-empty cell. A last line without its newline (a write cut short) is left out, as
+        `truncate_metrics` drops it on resume. Raises CmatError naming the file and the line
+        of the first row that breaks this, or the first byte that is not UTF-8."""
         if not self.metrics_path.is_file():
             return []
-        with self.metrics_path.open(newline="") as file:
-            return list(csv.DictReader(file))
+        text = read_text(self.metrics_path, "metrics file")
+        lines = io.StringIO(text).readlines()
+        if lines and not lines[-1].endswith("\n"):
+            lines.pop()
+        if not lines:
+            return []
+        reader = csv.reader(lines)
+        header = next(reader, [])
+        missing = [column for column in COLUMNS[:3] if column not in header]
+        if missing:
+            raise CmatError(f"unreadable {self.metrics_path}, line 1: no {missing[0]} column")
+        rows = []
+        for number, cells in enumerate(reader, start=2):
+            problem = metrics_row_problem(header, cells)
+            if problem:
+                raise CmatError(f"unreadable {self.metrics_path}, line {number}: {problem}")
+            rows.append(dict(zip(header, cells)))
+        return rows
 
     def truncate_metrics(self, env_steps: int) -> None:
         """Drop trailing rows past `env_steps` and any half-written last line; keep the rest."""
@@ -384,6 +406,23 @@ class RunDir:
     def summary_writer(self, purge_step: int | None = None) -> SummaryWriter:
         """TensorBoard writer; `purge_step` hides events at or after it left by an earlier try."""
         return SummaryWriter(str(self.tb_path), purge_step=purge_step)
+
+
+def metrics_row_problem(header: list[str], cells: list[str]) -> str | None:
+    """What is wrong with one metrics.csv row under `header`, or None."""
+    if len(cells) != len(header):
+        return f"{len(cells)} cells under {len(header)} columns"
+    for column, cell in zip(header, cells):
+        if column == "kind":
+            if cell not in ("train", "eval"):
+                return f"kind {cell!r} is neither train nor eval"
+        elif column in ("seed", "env_steps") or cell:
+            try:
+                int(cell) if column in ("seed", "env_steps") else float(cell)
+            except ValueError:
+                whole = " whole" if column in ("seed", "env_steps") else ""
+                return f"{column} {cell!r} is not a{whole} number"
+    return None
 
 
 def csv_value(value: str | int | float) -> str | int | float:

@@ -19,7 +19,7 @@ import pytest
 from test_rundir import lock_held_elsewhere
 
 from cmat.cli import main
-from cmat.config import validate
+from cmat.config import load_yaml, validate
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners.base import TrainerState
@@ -247,6 +247,32 @@ def test_bad_yaml_is_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert ("invalid config: ppo.epochs: expected an integer, got 'abc'"
             in one_error_line(capsys.readouterr().err))
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("text", "key", "line"), [
+    ("ppo:\n  lr: 0.001\n  epochs: 3\n  lr: 0.002\n", "lr", 4),
+    ("env: smax:3m\nseeds: 2\nenv: smax:8m\n", "env", 3),
+    ("env_kwargs: {k: -5, k: -6}\n", "k", 1),
+])
+def test_a_key_given_twice_is_one_error_line_in_configs_and_specs(
+    text: str, key: str, line: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "twice.yaml"
+    config.write_text(text)
+    duplicate = f"key {key!r} appears twice in one mapping (line {line})"
+    assert main(["train", "--config", str(config), "--out", str(tmp_path / "out")]) == 2
+    assert (f"config file {config} is not valid YAML: {duplicate}"
+            in one_error_line(capsys.readouterr().err))
+    assert main(["experiment", str(config), "--out", str(tmp_path / "grid")]) == 2
+    assert (f"experiment spec {config} is not valid YAML: {duplicate}"
+            in one_error_line(capsys.readouterr().err))
+    assert not (tmp_path / "out").exists() and not (tmp_path / "grid").exists()
+
+
+def test_yaml_merge_keys_still_override(tmp_path: Path) -> None:
+    config = tmp_path / "merge.yaml"
+    config.write_text("base: &base {epochs: 3, lr: 0.001}\nppo:\n  <<: *base\n  lr: 0.002\n")
+    assert load_yaml(config.read_text())["ppo"] == {"epochs": 3, "lr": 0.002}
 
 
 def test_files_that_are_not_utf8_text_are_one_error_line(

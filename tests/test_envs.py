@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import jax
@@ -83,7 +84,14 @@ def test_custom_payoff_replaces_fig1() -> None:
     assert timesteps.action_mask.shape == (9, 2, 3)
 
 
-@pytest.mark.parametrize("k", [-100.0, -5.0])
+@pytest.mark.parametrize("k", ["abc", None, float("inf"), float("nan"), True, [1.0]])
+def test_a_penalty_that_is_not_a_finite_number_is_named(k: object) -> None:
+    with pytest.raises(CmatError, match=f"matrix:penalty: k must be a finite number, got "
+                                        f"{re.escape(repr(k))}$"):
+        make_env("matrix:penalty", k=k)
+
+
+@pytest.mark.parametrize("k", [-100.0, -5.0, -7])
 def test_penalty_game(k: float) -> None:
     env = make_env("matrix:penalty", k=k)
     state, _ = env.reset(jax.random.key(0))

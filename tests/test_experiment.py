@@ -398,6 +398,14 @@ def test_plan_changes_are_detected_without_running(
     assert (f"redo    {STAGE_RUN.removeprefix('runs/')}: metrics.csv lacks the eval rows of its "
             f"checkpoint at 500 env steps") in done.stdout
 
+    metrics = out / MAT_RUN / "metrics.csv"
+    lines = metrics.read_text().split("\n")
+    lines[2] = lines[2].replace(",", ",word,", 1).rsplit(",", 1)[0]
+    metrics.write_text("\n".join(lines))
+    done = experiment(str(SMOKE), "--out", str(out), "--dry-run")
+    assert (f"redo    {MAT_RUN.removeprefix('runs/')}: unreadable {metrics}, line 3: seed 'word' "
+            f"is not a whole number") in done.stdout
+
 
 def test_unavailable_environments_are_reported_and_skipped(
     grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str],
@@ -431,7 +439,8 @@ def test_unavailable_environments_are_reported_and_skipped(
     [
         ("nope:x", "unknown environment prefix 'nope'"),
         ("smax:3s5zz", "unknown SMAX scenario '3s5zz'"),
-        ({"id": "matrix:penalty", "set": ["env_kwargs.k=abc"]}, "malformed payoff"),
+        ({"id": "matrix:penalty", "set": ["env_kwargs.k=abc"]},
+         "matrix:penalty: k must be a finite number, got 'abc'"),
         ({"id": "smax:3m", "set": ["env_kwargs.see_enemy=true"]}, "unknown option 'see_enemy'"),
     ],
 )
@@ -805,5 +814,29 @@ def test_ray_address_without_ray_is_one_error_line(
     monkeypatch.setitem(sys.modules, "ray", None)
     path = tmp_path / "spec.yaml"
     path.write_text(yaml.safe_dump(SPEC))
-    assert main(["experiment", str(path), "--out", str(tmp_path / "out"), "--ray", "auto"]) == 2
-    assert "--ray needs Ray: pip install 'cmat[ray]'" in one_error_line(capsys.readouterr().err)
+    for dry_run in ([], ["--dry-run"]):
+        assert main(["experiment", str(path), "--out", str(tmp_path / "out"), "--ray", "auto",
+                     *dry_run]) == 2
+        assert "--ray needs Ray: pip install 'cmat[ray]'" in one_error_line(
+            capsys.readouterr().err)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("flag", "options"), [
+    ("--out", []), ("--out", ["--dry-run"]), ("--export", ["--report-only"]), ("--export", []),
+])
+def test_a_file_where_a_directory_is_needed_is_one_error_line_before_any_work(
+    flag: str, options: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "spec.yaml"
+    path.write_text(yaml.safe_dump(SPEC))
+    file = tmp_path / "notes.txt"
+    file.write_text("mine")
+    out = ["--out", str(tmp_path / "out")] if flag == "--export" else []
+    for target, message in ((file, f"{flag} {file} is a file, not a directory"),
+                            (file / "grid", f"{flag} {file / 'grid'}: its parent {file} is a "
+                                            "file, not a directory")):
+        before = sorted(tmp_path.iterdir())
+        assert main(["experiment", str(path), *out, flag, str(target), *options]) == 2
+        assert message in one_error_line(capsys.readouterr().err)
+        assert sorted(tmp_path.iterdir()) == before and file.read_text() == "mine"

@@ -197,6 +197,59 @@ def test_truncate_reports_a_garbled_row(tmp_path: Path) -> None:
         run.truncate_metrics(100)
 
 
+def replace_cell(text: str, line: int, column: str, value: str) -> str:
+    """`text` (a metrics.csv) with the cell of `column` on 1-based `line` set to `value`."""
+    lines = text.split("\n")
+    cells = lines[line - 1].split(",")
+    cells[lines[0].split(",").index(column)] = value
+    lines[line - 1] = ",".join(cells)
+    return "\n".join(lines)
+
+
+DAMAGED_METRICS = {
+    "a word for a number": (lambda t: replace_cell(t, 3, "episode_return", "lots").encode(),
+                            "line 3: episode_return 'lots' is not a number"),
+    "a fraction of a step": (lambda t: replace_cell(t, 4, "env_steps", "2.5").encode(),
+                             "line 4: env_steps '2.5' is not a whole number"),
+    "an unknown kind": (lambda t: replace_cell(t, 2, "kind", "test").encode(),
+                        "line 2: kind 'test' is neither train nor eval"),
+    "a cell too many": (lambda t: replace_cell(t, 5, "seed", "0,0").encode(),
+                        f"line 5: {len(COLUMNS) + 1} cells under {len(COLUMNS)} columns"),
+    "a header without seeds": (lambda t: t.replace("seed,", "seeds,", 1).encode(),
+                               "line 1: no seed column"),
+    "a byte that is not UTF-8": (lambda t: b"\xfe" + t.encode()[1:],
+                                 "is not UTF-8 text \\(byte 0\\)"),
+}
+
+
+@pytest.mark.parametrize("damage", DAMAGED_METRICS)
+@pytest.mark.parametrize("diagnostics", [[], ["--diagnostics"]])
+def test_a_damaged_metrics_file_is_one_error_line_naming_file_and_line(
+    damage: str, diagnostics: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = RunDir.create(tmp_path / "run", TrainConfig(env="smax:3m", seeds=2))
+    run.append_metrics([{**row, "kind": "train", "policy_loss": 0.5}
+                        for row in eval_rows([100], 2, win_rate=True)])
+    run.append_metrics(eval_rows([100, 200], 2, win_rate=True))
+    assert len(run.read_metrics()) == 6
+    make, message = DAMAGED_METRICS[damage]
+    run.metrics_path.write_bytes(make(run.metrics_path.read_text()))
+    with pytest.raises(CmatError, match=message):
+        run.read_metrics()
+    assert main(["plot", str(run.path), "--out", str(tmp_path / "x.png"), *diagnostics]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(run.metrics_path) in err[0]
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_a_last_row_cut_short_is_left_out_of_the_rows_read(tmp_path: Path) -> None:
+    run = RunDir.create(tmp_path, TrainConfig())
+    run.append_metrics(eval_rows([100], 2, win_rate=True))
+    with run.metrics_path.open("a") as file:
+        file.write("eval,0,200,1.")
+    assert [r["env_steps"] for r in run.read_metrics()] == ["100", "100"]
+
+
 def test_plot_draws_a_win_rate_panel_only_where_a_run_defines_it(tmp_path: Path) -> None:
     no_win = RunDir.create(tmp_path / "mpe", TrainConfig(env="mpe:simple_spread", seeds=2))
     no_win.append_metrics(eval_rows([100, 200, 300], 2, win_rate=False))

@@ -73,7 +73,10 @@ def fig1(payoff: Sequence[Sequence[float]] = FIG1_PAYOFF) -> MatrixGame:
 
 
 def penalty(k: float = -100.0) -> MatrixGame:
-    """Claus & Boutilier's penalty game: [[10, 0, k], [0, 2, 0], [k, 0, 10]]."""
+    """Claus & Boutilier's penalty game: [[10, 0, k], [0, 2, 0], [k, 0, 10]]. Raises
+    CmatError where `k` is not a finite number."""
+    if isinstance(k, bool) or not isinstance(k, (int, float)) or not np.isfinite(k):
+        raise CmatError(f"matrix:penalty: k must be a finite number, got {k!r}")
     return MatrixGame("matrix:penalty", [[10.0, 0.0, k], [0.0, 2.0, 0.0], [k, 0.0, 10.0]])
 
 

@@ -224,16 +224,21 @@ class LocalExecutor:
                 process.kill()
 
 
+def import_ray() -> Any:
+    """The `ray` module; CmatError naming the extra to install where it is missing."""
+    try:
+        import ray
+    except ImportError:
+        raise CmatError("--ray needs Ray: pip install 'cmat[ray]'") from None
+    return ray
+
+
 class RayExecutor:
     """Runs as Ray tasks of one CPU each on the cluster at `address` (`ray.init(address)`)."""
 
     def __init__(self, address: str, cache: Path) -> None:
         self.cache = str(cache)
-        try:
-            import ray
-        except ImportError:
-            raise CmatError("--ray needs Ray: pip install 'cmat[ray]'") from None
-        self.ray = ray
+        self.ray = ray = import_ray()
         try:
             ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
         except Exception as error:  # Ray raises ConnectionError, RuntimeError, ValueError

@@ -250,8 +250,10 @@ def metrics_problem(run_dir: RunDir, steps: int, config: TrainConfig) -> str | N
         rows = run_dir.read_metrics()
         final = {int(r["seed"]) for r in rows
                  if r["kind"] == "eval" and int(r["env_steps"]) == steps}
-    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
-        return f"unreadable metrics.csv ({type(error).__name__})"
+    except CmatError as error:
+        return str(error)
+    except OSError as error:
+        return f"unreadable metrics.csv ({error.strerror})"
     seeds = set(range(config.seed, config.seed + config.seeds))
     if not seeds <= final:
         return f"metrics.csv lacks the eval rows of its checkpoint at {steps} env steps"

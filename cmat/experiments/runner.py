@@ -21,6 +21,7 @@ from cmat.experiments.execute import (
     discard,
     execute,
     experiment_lock,
+    import_ray,
 )
 from cmat.experiments.plan import (
     FINISHED,
@@ -72,8 +73,11 @@ def run_experiment(
             raise CmatError(f"--export {export} is the experiment directory itself")
     elif carry:
         raise CmatError("--carry applies to --export only")
-    for directory in (out, export):
+    if ray_address is not None and not report_only:
+        import_ray()
+    for flag, directory in (("--out", out), ("--export", export)):
         if directory is not None:
+            check_directory_path(directory, flag)
             check_same_experiment(directory, spec.name)
     plan = make_plan(spec, out)
     selected = select(plan, only)
@@ -117,6 +121,15 @@ def run_experiment(
             f"{out / 'results.md'}; run the same command again to retry"
         )
     return plan
+
+
+def check_directory_path(directory: Path, flag: str) -> None:
+    """CmatError where `directory`, or the nearest of its parents that exists, is not a
+    directory (a file), before anything is planned or written."""
+    existing = next((path for path in (directory, *directory.parents) if path.exists()), None)
+    if existing is not None and not existing.is_dir():
+        where = "" if existing == directory else f": its parent {existing}"
+        raise CmatError(f"{flag} {directory}{where} is a file, not a directory")
 
 
 def check_same_experiment(directory: Path, name: str) -> None:

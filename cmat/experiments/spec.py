@@ -44,7 +44,7 @@ from typing import Any
 import yaml
 
 from cmat.algorithms import algorithm_class, algorithm_names
-from cmat.config import FINETUNE_MODES
+from cmat.config import FINETUNE_MODES, load_yaml
 from cmat.errors import CmatError, read_text
 
 FIGURES = ("main", "ablation", "none")
@@ -126,7 +126,7 @@ def load_spec(path: Path) -> ExperimentSpec:
     """Read and check a spec; every problem is a one-line CmatError naming the file and key."""
     path = Path(path)
     try:
-        raw = yaml.safe_load(read_text(path, "experiment spec"))
+        raw = load_yaml(read_text(path, "experiment spec"))
     except FileNotFoundError:
         raise CmatError(f"experiment spec not found: {path}") from None
     except yaml.YAMLError as error:
