@@ -268,6 +268,15 @@ def zero_agents() -> TargetGame:
     return game
 
 
+def spec_with(**changes: Any) -> Any:
+    """A factory of TargetGame whose spec has `changes` (of any type: a user's mistakes)."""
+    def factory() -> TargetGame:
+        game = TargetGame()
+        game.spec = replace(game.spec, **changes)
+        return game
+    return factory
+
+
 BROKEN = {
     "wrong_obs": (WrongObs, "reset's TimeStep.obs is (3, 2) float32, but the spec needs "
                             "shape (3, 3)"),
@@ -280,6 +289,14 @@ BROKEN = {
     "rewardless": (RewardlessOutpost, "'runner' is missing from"),
     "infinite_box": (lambda: Crane(infinite=True), "agent 'agent_1''s Box has an infinite bound"),
     "zero_agents": (zero_agents, "must all be >= 1"),
+    "text_agents": (spec_with(num_agents="3"), "the spec's num_agents must be a whole number, "
+                                               "got '3'"),
+    "bool_obs_dim": (spec_with(obs_dim=True), "the spec's obs_dim must be a whole number, got "
+                                              "True"),
+    "numeric_discrete": (spec_with(discrete=1), "the spec's discrete must be True or False, "
+                                                "got 1"),
+    "text_bound": (spec_with(action_low="-1"), "the spec's action_low must be a number, got "
+                                               "'-1'"),
     "not_an_env": (lambda: object(), "must return a cmat MarlEnv (spec, reset, step) or a "
                                      "JaxMARL MultiAgentEnv, got object"),
     "raising_factory": (lambda: 1 / 0, "the factory raised ZeroDivisionError"),

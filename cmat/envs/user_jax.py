@@ -27,7 +27,9 @@ it). A mismatch, or an exception raised while tracing the user's code, is a one-
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import numbers
 from typing import Any, cast
 
 import jax
@@ -97,6 +99,7 @@ def check_marl_env(env: MarlEnv, env_id: str) -> None:
     if not isinstance(spec, EnvSpec):
         raise CmatError(f"{env_id}: the env's spec must be a cmat.envs.EnvSpec, got "
                         f"{type(spec).__name__}")
+    check_spec_types(spec, env_id)
     if spec.num_agents < 1 or spec.obs_dim < 1 or spec.action_dim < 1 or (
         spec.max_episode_steps < 1
     ):
@@ -117,6 +120,24 @@ def check_marl_env(env: MarlEnv, env_id: str) -> None:
     ):
         raise CmatError(f"{env_id}: step returns a state unlike reset's (its structure, shapes "
                         f"or dtypes differ); the rollout carries one fixed state type")
+
+
+SPEC_FIELD_KINDS = {"str": (str, "text"), "int": (numbers.Integral, "a whole number"),
+                    "bool": ((bool, np.bool_), "True or False"),
+                    "float": (numbers.Real, "a number")}
+"""Per annotation of an EnvSpec field: the accepted types and their name in errors."""
+
+
+def check_spec_types(spec: EnvSpec, env_id: str) -> None:
+    """CmatError naming the first EnvSpec field whose value is not of its annotated kind (a
+    bool is not taken for a number, nor a number for a bool)."""
+    for field in dataclasses.fields(EnvSpec):
+        accepted, wanted = SPEC_FIELD_KINDS[str(field.type)]
+        value = getattr(spec, field.name)
+        is_bool = isinstance(value, (bool, np.bool_))
+        if not isinstance(value, accepted) or (is_bool and field.type != "bool"):
+            raise CmatError(f"{env_id}: the spec's {field.name} must be {wanted}, got "
+                            f"{value!r}")
 
 
 def _check_timestep(env_id: str, call: str, timestep: Any, spec: EnvSpec) -> None:
