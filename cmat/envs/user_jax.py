@@ -122,9 +122,10 @@ def check_marl_env(env: MarlEnv, env_id: str) -> None:
                         f"or dtypes differ); the rollout carries one fixed state type")
 
 
-SPEC_FIELD_KINDS = {"str": (str, "text"), "int": (numbers.Integral, "a whole number"),
-                    "bool": ((bool, np.bool_), "True or False"),
-                    "float": (numbers.Real, "a number")}
+SPEC_FIELD_KINDS: dict[str, tuple[type | tuple[type, ...], str]] = {
+    "str": (str, "text"), "int": (numbers.Integral, "a whole number"),
+    "bool": ((bool, np.bool_), "True or False"), "float": (numbers.Real, "a number"),
+}
 """Per annotation of an EnvSpec field: the accepted types and their name in errors."""
 
 
