@@ -545,3 +545,41 @@ def test_a_render_that_is_no_rgb_array_says_what_it_got(picture: Any, got: str) 
     assert str(raised.value) == (f"pettingzoo:m:f: render() returned no RGB array (got {got}); "
                                  f"expected an (H, W, 3) uint8 array, as "
                                  f"render_mode='rgb_array' gives")
+
+
+class TurnTaker:
+    """Looks like an AEC env: agents act in turn (`agent_iter`)."""
+
+    possible_agents: ClassVar[list[str]] = ["a", "b"]
+
+    def reset(self) -> None: ...
+
+    def step(self, action: int) -> None: ...
+
+    def agent_iter(self) -> list[str]:
+        return self.possible_agents
+
+
+class JaxLike:
+    """Looks like a cmat MarlEnv: a spec, reset and step, no possible_agents."""
+
+    spec = None
+
+    def reset(self, key: Any) -> None: ...
+
+    def step(self, key: Any, state: Any, actions: Any) -> None: ...
+
+
+@pytest.mark.parametrize(("built", "hint"), [
+    (TurnTaker, " (an AEC env: convert it with pettingzoo.utils.aec_to_parallel)"),
+    (JaxLike, " (a cmat MarlEnv or JaxMARL env: use jax:MODULE:FACTORY)"),
+    (dict, ""),
+])
+def test_a_factory_that_builds_no_parallel_env_gets_the_hint_that_fits(
+    built: type, hint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(globals(), "built_env", built)
+    with pytest.raises(CmatError) as raised:
+        make_host_env(f"pettingzoo:{HERE}:built_env")
+    assert str(raised.value) == (f"pettingzoo:{HERE}:built_env: the factory must return a "
+                                 f"PettingZoo ParallelEnv, got {built.__name__}{hint}")

@@ -115,12 +115,14 @@ class PettingZooEnv(AutoReset):
     def __init__(self, env: Any, env_id: str, max_episode_steps: int | None = None) -> None:
         import gymnasium.spaces as spaces
 
-        if not all(hasattr(env, name) for name in ("possible_agents", "reset", "step")) or hasattr(
-            env, "agent_iter"
-        ):
+        aec = hasattr(env, "agent_iter")
+        if aec or not all(hasattr(env, name) for name in ("possible_agents", "reset", "step")):
+            hint = (" (an AEC env: convert it with pettingzoo.utils.aec_to_parallel)" if aec
+                    else " (a cmat MarlEnv or JaxMARL env: use jax:MODULE:FACTORY)"
+                    if hasattr(env, "step_env") or hasattr(env, "spec") else "")
             raise CmatError(
                 f"{env_id}: the factory must return a PettingZoo ParallelEnv, got "
-                f"{type(env).__name__} (an AEC env converts with pettingzoo.utils.aec_to_parallel)"
+                f"{type(env).__name__}{hint}"
             )
         self.env = env
         self.agents: list[str] = list(env.possible_agents)
