@@ -36,7 +36,7 @@ from cmat.envs.protocol import EnvSpec
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners import trainer as trainer_lib
-from cmat.runners.learner import make_batch, nonfinite_code
+from cmat.runners.learner import NONFINITE_QUANTITIES, Transition, make_batch, nonfinite_code
 from cmat.runners.trainer import JaxTrainer, build_setup, init_state
 
 pytestmark = pytest.mark.quick_compiles
@@ -385,10 +385,21 @@ def test_the_log_ratio_clamp_changes_nothing_inside_its_bound() -> None:
 def test_nonfinite_code_names_the_quantity() -> None:
     good = {"loss": jnp.float32(1.0), "grad_norm": jnp.float32(1.0)}
     params = {"w": jnp.ones(3)}
-    assert int(nonfinite_code(good, params)) == 0
-    assert int(nonfinite_code({**good, "loss": jnp.float32(jnp.nan)}, params)) == 1
-    assert int(nonfinite_code({**good, "grad_norm": jnp.float32(jnp.inf)}, params)) == 2
-    assert int(nonfinite_code(good, {"w": jnp.array([1.0, jnp.nan, 0.0])})) == 3
+    steps = Transition(**{name: jnp.zeros((4, 2)) for name in Transition._fields})
+    nan = jnp.zeros((4, 2)).at[3, 1].set(jnp.nan)
+    assert int(nonfinite_code(good, params, steps)) == 0
+    assert int(nonfinite_code(good, params, steps._replace(global_state=jnp.zeros((4, 0))))) == 0
+    names = [NONFINITE_QUANTITIES[int(code) - 1] for code in (
+        nonfinite_code(good, params, steps._replace(reward=nan, obs=nan)),
+        nonfinite_code({**good, "loss": jnp.float32(jnp.nan)}, params, steps._replace(obs=nan)),
+        nonfinite_code({**good, "loss": jnp.float32(jnp.nan)}, params,
+                       steps._replace(global_state=jnp.full((4, 2), jnp.inf))),
+        nonfinite_code({**good, "loss": jnp.float32(jnp.nan)}, params, steps),
+        nonfinite_code({**good, "grad_norm": jnp.float32(jnp.inf)}, params, steps),
+        nonfinite_code(good, {"w": jnp.array([1.0, jnp.nan, 0.0])}, steps),
+    )]
+    assert names == ["environment reward", "environment observation",
+                     "environment global state", "loss", "gradient norm", "parameters"]
 
 
 TINY = ["num_envs=4", "rollout_length=25", "log_interval=2", "ppo.epochs=2", "eval_episodes=4"]

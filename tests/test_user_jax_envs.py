@@ -166,12 +166,13 @@ def test_a_new_run_that_fails_before_its_first_chunk_leaves_no_directory(
     assert main(["train", "--env", f"jax:{HERE}:target_game", "--out", str(first), *common,
                  "env_kwargs.nan_after=2"]) == 2
     error = capsys.readouterr().err
-    assert "non-finite" in error and f"; the new run directory {first} was removed" in error, error
+    assert "non-finite environment reward at update 1 (seed 0)" in error, error
+    assert f"; the new run directory {first} was removed" in error, error
     assert not first.exists()
     assert main(["train", "--env", f"jax:{HERE}:target_game", "--out", str(later), *common,
                  "env_kwargs.nan_after=12"]) == 2
     error = capsys.readouterr().err
-    assert "non-finite" in error and "removed" not in error, error
+    assert "non-finite environment reward at update 3" in error and "removed" not in error, error
     rows = list(csv.DictReader((later / "metrics.csv").open()))
     assert {int(row["env_steps"]) for row in rows} == {20}
     assert RunDir.open(later).checkpoint_steps() == (20, True)

@@ -218,21 +218,29 @@ def optimise(
     )
 
 
-NONFINITE_QUANTITIES = ("loss", "gradient norm", "parameters")
+NONFINITE_QUANTITIES = (
+    "environment reward", "environment observation", "environment global state", "loss",
+    "gradient norm", "parameters",
+)
 """What `nonfinite_code` k > 0 names: NONFINITE_QUANTITIES[k - 1]."""
 
 
-def nonfinite_code(metrics: dict[str, jax.Array], params: Params) -> jax.Array:
-    """0 if the update's loss, gradient norm and new parameters are all finite; else 1 + the
-    index in `NONFINITE_QUANTITIES` of the first that is not (the loss and gradient norm are
-    means over the update's minibatch steps, so one bad step makes them non-finite)."""
-    params_finite = jnp.all(jnp.stack(
-        [jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(params)]
-    ))
-    finite = jnp.stack([
-        jnp.isfinite(metrics["loss"]), jnp.isfinite(metrics["grad_norm"]), params_finite
+def nonfinite_code(
+    metrics: dict[str, jax.Array], params: Params, steps: Transition
+) -> jax.Array:
+    """0 if the rollout's rewards, observations and global states, the update's loss and
+    gradient norm and the new parameters are all finite; else 1 + the index in
+    `NONFINITE_QUANTITIES` of the first that is not (the environment's values first, as a bad
+    one makes everything after it non-finite; the loss and gradient norm are means over the
+    update's minibatch steps, so one bad step makes them non-finite)."""
+    def finite(tree: Any) -> jax.Array:
+        return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)]))
+
+    checks = jnp.stack([
+        finite(steps.reward), finite(steps.obs), finite((steps.global_state, jnp.float32(0))),
+        jnp.isfinite(metrics["loss"]), jnp.isfinite(metrics["grad_norm"]), finite(params),
     ])
-    return jnp.where(jnp.all(finite), 0, 1 + jnp.argmin(finite)).astype(jnp.int32)
+    return jnp.where(jnp.all(checks), 0, 1 + jnp.argmin(checks)).astype(jnp.int32)
 
 
 def learn(
@@ -255,7 +263,7 @@ def learn(
         "episodes": jnp.sum(steps.done),
         "return_sum": jnp.sum(steps.finished_return),
         "win_sum": jnp.sum(steps.won & steps.done),
-        "nonfinite": nonfinite_code(metrics, params),
+        "nonfinite": nonfinite_code(metrics, params, steps),
     }
     learner = LearnerState(
         params=params, target_params=target_params, opt_state=opt_state,
