@@ -442,6 +442,7 @@ def test_unavailable_environments_are_reported_and_skipped(
         ({"id": "matrix:penalty", "set": ["env_kwargs.k=abc"]},
          "matrix:penalty: k must be a finite number, got 'abc'"),
         ({"id": "smax:3m", "set": ["env_kwargs.see_enemy=true"]}, "unknown option 'see_enemy'"),
+        ("jax:cmat_no_such_user_module:make", "cannot import 'cmat_no_such_user_module'"),
     ],
 )
 def test_a_task_that_names_no_environment_is_an_error_not_a_skip(

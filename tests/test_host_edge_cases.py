@@ -119,13 +119,18 @@ class BoxGame(ParallelEnv):
                 {a: True for a in agents}, {a: False for a in agents}, {a: {} for a in agents})
 
 
+MASK_FAULTS = {"dead_mask": np.zeros(2, np.int8), "short_mask": np.ones(1, np.int8),
+               "long_mask": np.ones((1, 3), bool)}
+"""FaultyGame's info action masks of "q" for two actions: none allowed, one entry, three."""
+
+
 class FaultyGame(ParallelEnv):
     """Two agents, 5-step episodes, observations of shape (3,), rewards 1.0. `fault` breaks one
     thing at episode step `at` (0: at reset): "obs_shape" (a (4,) observation), "reward" (the
     reward as `reward_value`), "nan_obs", "nan_reward", "raise" (the simulator raises, every
     time from then on), "no_rewards" (an empty rewards dict), "missing_reward" (none for "q"),
-    "gym4" (a Gym-style 4-tuple), "dead_mask" (an info action mask of "q" that allows no
-    action)."""
+    "gym4" (a Gym-style 4-tuple), "dead_mask", "short_mask", "long_mask" (an info action mask
+    of "q" from MASK_FAULTS)."""
 
     metadata: ClassVar[dict[str, Any]] = {"name": "faulty_game"}
 
@@ -157,8 +162,8 @@ class FaultyGame(ParallelEnv):
 
     def _infos(self) -> dict[str, dict]:
         infos: dict[str, dict] = {agent: {} for agent in self.agents}
-        if self._t == self.at and self.fault == "dead_mask":
-            infos["q"]["action_mask"] = np.zeros(2, np.int8)
+        if self._t == self.at and self.fault in MASK_FAULTS:
+            infos["q"]["action_mask"] = MASK_FAULTS[self.fault]
         return infos
 
     def step(self, actions: dict[str, int]) -> tuple[dict, ...]:
@@ -345,6 +350,10 @@ def test_a_policy_learns_to_hit_targets_inside_boxes_far_from_zero() -> None:
                                           "episode allows no action"),
         ({"fault": "dead_mask", "at": 4}, "the action mask of live agent 'q' at step 4 of an "
                                           "episode allows no action"),
+        ({"fault": "short_mask", "at": 0}, "the action mask of agent 'q' at step 0 of an "
+                                           "episode has 1 entries, but its action space has 2"),
+        ({"fault": "long_mask", "at": 3}, "the action mask of agent 'q' at step 3 of an episode "
+                                          "has 3 entries, but its action space has 2 actions"),
     ],
 )
 def test_malformed_returns_are_error_line(kwargs: dict, message: str) -> None:
@@ -511,8 +520,9 @@ def test_an_unimportable_module_hints_at_pythonpath_or_names_the_missing_depende
     (tmp_path / "cmat_user_envs_a.py").write_text("import cmat_no_such_dependency\n")
     (tmp_path / "cmat_user_envs_b.py").write_text("raise RuntimeError('half written')\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    with pytest.raises(SuiteUnavailable) as own:
+    with pytest.raises(CmatError) as own:
         make_host_env("pettingzoo:cmat_no_such_package.envs:make")
+    assert not isinstance(own.value, SuiteUnavailable)
     assert ("cannot import 'cmat_no_such_package.envs' (No module named 'cmat_no_such_package'); "
             "it must be importable from the Python running cmat (") in str(own.value)
     assert str(own.value).endswith("put its directory on PYTHONPATH or pip-install its package")

@@ -263,6 +263,12 @@ class RewardlessOutpost(Outpost):
         return obs, state, {"scout": rewards["scout"]}, dones, infos
 
 
+class VectorRewardOutpost(Outpost):
+    def step_env(self, key: jax.Array, state: Any, actions: dict[str, jax.Array]) -> Any:
+        obs, state, rewards, dones, infos = super().step_env(key, state, actions)
+        return obs, state, {**rewards, "runner": jnp.full(2, rewards["runner"])}, dones, infos
+
+
 def zero_agents() -> TargetGame:
     game = TargetGame()
     game.spec = replace(game.spec, num_agents=0)
@@ -288,6 +294,8 @@ BROKEN = {
     "multidiscrete": (MultiDiscreteOutpost, "action spaces must be all Discrete or all Box, "
                                             "got Discrete, MultiDiscrete"),
     "rewardless": (RewardlessOutpost, "'runner' is missing from"),
+    "vector_reward": (VectorRewardOutpost, "step_env's reward of agent 'runner' has shape (2,); "
+                                           "expected one number per agent"),
     "infinite_box": (lambda: Crane(infinite=True), "agent 'agent_1''s Box has an infinite bound"),
     "zero_agents": (zero_agents, "must all be >= 1"),
     "text_agents": (spec_with(num_agents="3"), "the spec's num_agents must be a whole number, "

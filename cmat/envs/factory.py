@@ -12,7 +12,11 @@ from cmat.errors import CmatError, SuiteUnavailable
 
 
 def load_factory(env_id: str, target: str) -> Callable[..., Any]:
-    """The callable named by `package.module:factory` (the factory may be dotted: `Class.make`)."""
+    """The callable named by `package.module:factory` (the factory may be dotted: `Class.make`).
+
+    Raises CmatError where the module itself cannot be found (a typo or a missing PYTHONPATH:
+    the user's to fix, so a grid stops on it) and SuiteUnavailable where the module imports a
+    package that is not installed (a grid reports the task unavailable, as for a suite)."""
     module_name, _, attribute = target.rpartition(":")
     if not module_name or not attribute:
         prefix = env_id.partition(":")[0]
@@ -22,7 +26,7 @@ def load_factory(env_id: str, target: str) -> Callable[..., Any]:
     except ModuleNotFoundError as error:
         missing = error.name or ""
         if module_name == missing or module_name.startswith(f"{missing}."):
-            raise SuiteUnavailable(
+            raise CmatError(
                 f"{env_id}: cannot import {module_name!r} ({error}); it must be importable from "
                 f"the Python running cmat ({sys.executable}): put its directory on PYTHONPATH "
                 f"or pip-install its package"

@@ -227,6 +227,11 @@ class JaxMarlUserEnv(JaxMarlEnv):
         if missing:
             raise CmatError(f"{env_id}: step_env's rewards and dones must hold every agent; "
                             f"{missing[0]!r} is missing from {_keys(rewards)} or {_keys(dones)}")
+        vector = next((agent for agent in self.agents
+                       if math.prod(getattr(rewards[agent], "shape", ())) != 1), None)
+        if vector is not None:
+            raise CmatError(f"{env_id}: step_env's reward of agent {vector!r} has shape "
+                            f"{tuple(rewards[vector].shape)}; expected one number per agent")
         self.has_win = isinstance(step_returns[4], dict) and "won" in step_returns[4]
         max_steps = getattr(env, "max_steps", None)
         self.spec = EnvSpec(

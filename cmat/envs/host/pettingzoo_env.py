@@ -328,7 +328,12 @@ class PettingZooEnv(AutoReset):
             elif agent_mask is None:
                 mask[index, :size] = True
             else:
-                mask[index, :size] = np.asarray(agent_mask, bool).reshape(-1)[:size]
+                flat = np.asarray(agent_mask).reshape(-1)
+                if flat.size != size:
+                    raise CmatError(f"{spec.env_id}: the action mask of agent {agent!r} "
+                                    f"{self.at_step} has {flat.size} entries, but its action "
+                                    f"space has {size} actions")
+                mask[index, :size] = flat.astype(bool)
                 if not mask[index].any():
                     raise CmatError(f"{spec.env_id}: the action mask of live agent {agent!r} "
                                     f"{self.at_step} allows no action; an agent with nothing to "
