@@ -290,7 +290,8 @@ BROKEN = {
     "drifting_state": (DriftingState, "step returns a state unlike reset's"),
     "raising_reset": (RaisingReset, "reset(key) raised ValueError: no map loaded"),
     "integer_reward": (IntegerReward, "step's TimeStep.reward is () int32"),
-    "tuple_timestep": (Tuple3, "reset must return (state, cmat.envs.TimeStep), got tuple"),
+    "tuple_timestep": (Tuple3, "reset must return (state, cmat.envs.TimeStep), got tuple as "
+                                "the second item"),
     "multidiscrete": (MultiDiscreteOutpost, "action spaces must be all Discrete or all Box, "
                                             "got Discrete, MultiDiscrete"),
     "rewardless": (RewardlessOutpost, "'runner' is missing from"),

@@ -144,7 +144,7 @@ def check_spec_types(spec: EnvSpec, env_id: str) -> None:
 def _check_timestep(env_id: str, call: str, timestep: Any, spec: EnvSpec) -> None:
     if not isinstance(timestep, TimeStep):
         raise CmatError(f"{env_id}: {call} must return (state, cmat.envs.TimeStep), got "
-                        f"{type(timestep).__name__} second")
+                        f"{type(timestep).__name__} as the second item")
     n = spec.num_agents
     expected = {
         "obs": ((n, spec.obs_dim), "floating"), "action_mask": ((n, spec.action_dim), "bool"),
