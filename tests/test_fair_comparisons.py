@@ -36,7 +36,7 @@ from cmat.envs.protocol import EnvSpec
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners import trainer as trainer_lib
-from cmat.runners.learner import NONFINITE_QUANTITIES, Transition, make_batch, nonfinite_code
+from cmat.runners.learner import ROLLOUT_FAULTS, Transition, fault_code, make_batch
 from cmat.runners.trainer import JaxTrainer, build_setup, init_state
 
 pytestmark = pytest.mark.quick_compiles
@@ -382,24 +382,32 @@ def test_the_log_ratio_clamp_changes_nothing_inside_its_bound() -> None:
         np.testing.assert_allclose(got, jax.grad(reference)(log_ratio), rtol=1e-6)
 
 
-def test_nonfinite_code_names_the_quantity() -> None:
+def test_fault_code_names_the_first_failed_check() -> None:
     good = {"loss": jnp.float32(1.0), "grad_norm": jnp.float32(1.0)}
     params = {"w": jnp.ones(3)}
     steps = Transition(**{name: jnp.zeros((4, 2)) for name in Transition._fields})
+    steps = steps._replace(alive=jnp.ones((4, 2), bool), action_mask=jnp.ones((4, 2, 3), bool))
     nan = jnp.zeros((4, 2)).at[3, 1].set(jnp.nan)
-    assert int(nonfinite_code(good, params, steps)) == 0
-    assert int(nonfinite_code(good, params, steps._replace(global_state=jnp.zeros((4, 0))))) == 0
-    names = [NONFINITE_QUANTITIES[int(code) - 1] for code in (
-        nonfinite_code(good, params, steps._replace(reward=nan, obs=nan)),
-        nonfinite_code({**good, "loss": jnp.float32(jnp.nan)}, params, steps._replace(obs=nan)),
-        nonfinite_code({**good, "loss": jnp.float32(jnp.nan)}, params,
-                       steps._replace(global_state=jnp.full((4, 2), jnp.inf))),
-        nonfinite_code({**good, "loss": jnp.float32(jnp.nan)}, params, steps),
-        nonfinite_code({**good, "grad_norm": jnp.float32(jnp.inf)}, params, steps),
-        nonfinite_code(good, {"w": jnp.array([1.0, jnp.nan, 0.0])}, steps),
+    closed = steps.action_mask.at[2, 1].set(False)
+    assert int(fault_code(good, params, steps)) == 0
+    assert int(fault_code(good, params, steps._replace(global_state=jnp.zeros((4, 0))))) == 0
+    dead_and_closed = steps._replace(action_mask=closed, alive=steps.alive.at[2, 1].set(False))
+    assert int(fault_code(good, params, dead_and_closed)) == 0
+    names = [ROLLOUT_FAULTS[int(code) - 1].split(" (")[0] for code in (
+        fault_code(good, params, steps._replace(reward=nan, obs=nan)),
+        fault_code({**good, "loss": jnp.float32(jnp.nan)}, params, steps._replace(obs=nan)),
+        fault_code({**good, "loss": jnp.float32(jnp.nan)}, params,
+                   steps._replace(global_state=jnp.full((4, 2), jnp.inf))),
+        fault_code({**good, "loss": jnp.float32(jnp.nan)}, params,
+                   steps._replace(action_mask=closed)),
+        fault_code({**good, "loss": jnp.float32(jnp.nan)}, params, steps),
+        fault_code({**good, "grad_norm": jnp.float32(jnp.inf)}, params, steps),
+        fault_code(good, {"w": jnp.array([1.0, jnp.nan, 0.0])}, steps),
     )]
-    assert names == ["environment reward", "environment observation",
-                     "environment global state", "loss", "gradient norm", "parameters"]
+    assert names == ["non-finite environment reward", "non-finite environment observation",
+                     "non-finite environment global state",
+                     "an action mask that allows no action to a live agent",
+                     "non-finite loss", "non-finite gradient norm", "non-finite parameters"]
 
 
 TINY = ["num_envs=4", "rollout_length=25", "log_interval=2", "ppo.epochs=2", "eval_episodes=4"]

@@ -39,10 +39,13 @@ class TargetGame:
     against the protocol. A random team earns 1/choices per step; a learned one 1."""
 
     def __init__(
-        self, agents: int = 3, choices: int = 3, length: int = 5, nan_after: int = 0
+        self, agents: int = 3, choices: int = 3, length: int = 5, nan_after: int = 0,
+        closed_after: int = 0,
     ) -> None:
-        """`nan_after` > 0: the reward is NaN from that many steps of an instance on."""
+        """`nan_after` > 0: the reward is NaN from that many steps of an instance on;
+        `closed_after` > 0: from that many steps on, agent 0 (alive) may take no action."""
         self.choices, self.length, self.nan_after = choices, length, nan_after
+        self.closed_after = closed_after
         self.spec = EnvSpec(
             env_id="jax:target", num_agents=agents, obs_dim=choices, action_dim=choices,
             discrete=True, max_episode_steps=length, has_win_rate=False,
@@ -50,8 +53,11 @@ class TargetGame:
 
     def _timestep(self, state: TargetState, reward: jax.Array, done: jax.Array) -> TimeStep:
         n = self.spec.num_agents
+        mask = jnp.ones((n, self.choices), bool)
+        if self.closed_after:
+            mask = mask.at[0].set(state.total < self.closed_after)
         return TimeStep(
-            jax.nn.one_hot(state.targets, self.choices), jnp.ones((n, self.choices), bool),
+            jax.nn.one_hot(state.targets, self.choices), mask,
             reward, done, jnp.asarray(False), jnp.ones(n, bool), jnp.zeros(0, jnp.float32),
         )
 
@@ -81,10 +87,11 @@ class Outpost(MultiAgentEnv):
     last action never available) and a runner ([2, 2] features, 5 actions), a world state, a
     "won" info, per-agent rewards and a runner that is done (out) after its first step."""
 
-    def __init__(self, max_steps: int = 4) -> None:
+    def __init__(self, max_steps: int = 4, closed_at: int = 0) -> None:
+        """`closed_at` > 0: from that step of an episode on, the scout may take no action."""
         super().__init__(num_agents=2)
         self.agents = ["scout", "runner"]
-        self.max_steps = max_steps
+        self.max_steps, self.closed_at = max_steps, closed_at
         self.observation_spaces = {"scout": Box(0, 1, (3,)), "runner": Box(0, 1, (2, 2))}
         self.action_spaces = {"scout": Discrete(3), "runner": Discrete(5)}
 
@@ -98,7 +105,10 @@ class Outpost(MultiAgentEnv):
                 "world_state": jnp.full(6, level)}
 
     def get_avail_actions(self, state: Any) -> dict[str, jax.Array]:
-        return {"scout": jnp.array([True, True, False]), "runner": jnp.ones(5, bool)}
+        scout = jnp.array([True, True, False])
+        if self.closed_at:
+            scout = scout & (state < self.closed_at)
+        return {"scout": scout, "runner": jnp.ones(5, bool)}
 
     def step_env(self, key: jax.Array, state: Any, actions: dict[str, jax.Array]) -> Any:
         state = state + 1
@@ -176,6 +186,27 @@ def test_a_new_run_that_fails_before_its_first_chunk_leaves_no_directory(
     rows = list(csv.DictReader((later / "metrics.csv").open()))
     assert {int(row["env_steps"]) for row in rows} == {20}
     assert RunDir.open(later).checkpoint_steps() == (20, True)
+
+
+@pytest.mark.parametrize("env_id", [f"jax:{HERE}:target_game", f"jax:{HERE}:outpost"])
+def test_a_live_agent_with_no_available_action_stops_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], env_id: str
+) -> None:
+    """A mask closed on a live agent, from a MarlEnv's `action_mask` or a JaxMARL env's
+    `get_avail_actions`, stops the run with one line naming the update; before it closes the
+    run trains (a dead agent's closed mask is no fault: the outpost's runner is out after its
+    first step and keeps its mask open, the target game never has a dead agent)."""
+    common = ["--algo", "mappo", "--steps", "80", "--set", "num_envs=2", "rollout_length=5",
+              "log_interval=2", "eval_episodes=1"]
+    fault = "env_kwargs.closed_after=12" if "target" in env_id else "env_kwargs.closed_at=3"
+    assert main(["train", "--env", env_id, "--out", str(tmp_path / "open"), *common]) == 0
+    capsys.readouterr()
+    assert main(["train", "--env", env_id, "--out", str(tmp_path / "closed"), *common,
+                 fault]) == 2
+    error = capsys.readouterr().err
+    assert "an action mask that allows no action to a live agent" in error, error
+    update = 3 if "target" in env_id else 1
+    assert f"at update {update} (seed 0)" in error, error
 
 
 def test_jaxmarl_env_is_adapted() -> None:

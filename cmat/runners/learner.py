@@ -218,26 +218,31 @@ def optimise(
     )
 
 
-NONFINITE_QUANTITIES = (
-    "environment reward", "environment observation", "environment global state", "loss",
-    "gradient norm", "parameters",
+ROLLOUT_FAULTS = (
+    "non-finite environment reward", "non-finite environment observation",
+    "non-finite environment global state",
+    "an action mask that allows no action to a live agent (one with nothing to do must be "
+    "marked not alive)",
+    "non-finite loss", "non-finite gradient norm", "non-finite parameters",
 )
-"""What `nonfinite_code` k > 0 names: NONFINITE_QUANTITIES[k - 1]."""
+"""What `fault_code` k > 0 names: ROLLOUT_FAULTS[k - 1]."""
 
 
-def nonfinite_code(
-    metrics: dict[str, jax.Array], params: Params, steps: Transition
-) -> jax.Array:
-    """0 if the rollout's rewards, observations and global states, the update's loss and
-    gradient norm and the new parameters are all finite; else 1 + the index in
-    `NONFINITE_QUANTITIES` of the first that is not (the environment's values first, as a bad
-    one makes everything after it non-finite; the loss and gradient norm are means over the
-    update's minibatch steps, so one bad step makes them non-finite)."""
+def fault_code(metrics: dict[str, jax.Array], params: Params, steps: Transition) -> jax.Array:
+    """0 if the rollout's rewards, observations and global states are finite, every live agent
+    had an action to take, and the update's loss, gradient norm and new parameters are finite;
+    else 1 + the index in `ROLLOUT_FAULTS` of the first check that failed (the environment's
+    first, as a bad value from it makes everything after it non-finite; the loss and gradient
+    norm are means over the update's minibatch steps, so one bad step makes them non-finite).
+    A closed mask would otherwise train silently: the masked policy falls back to a uniform
+    draw over actions the environment said were not available."""
     def finite(tree: Any) -> jax.Array:
         return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)]))
 
+    live_can_act = jnp.all(~steps.alive | jnp.any(steps.action_mask, axis=-1))
     checks = jnp.stack([
         finite(steps.reward), finite(steps.obs), finite((steps.global_state, jnp.float32(0))),
+        live_can_act,
         jnp.isfinite(metrics["loss"]), jnp.isfinite(metrics["grad_norm"]), finite(params),
     ])
     return jnp.where(jnp.all(checks), 0, 1 + jnp.argmin(checks)).astype(jnp.int32)
@@ -263,7 +268,7 @@ def learn(
         "episodes": jnp.sum(steps.done),
         "return_sum": jnp.sum(steps.finished_return),
         "win_sum": jnp.sum(steps.won & steps.done),
-        "nonfinite": nonfinite_code(metrics, params, steps),
+        "fault": fault_code(metrics, params, steps),
     }
     learner = LearnerState(
         params=params, target_params=target_params, opt_state=opt_state,
@@ -275,11 +280,11 @@ def learn(
 def summarise_updates(spec: EnvSpec, per_update: dict[str, jax.Array]) -> dict[str, jax.Array]:
     """Metrics of updates stacked on a leading axis: losses averaged over the updates performed
     (`performed`, all where absent), episode sums pooled into the mean return and win rate of
-    the episodes that ended in the span (NaN where none did). `nonfinite_update` is the index of
-    the first update whose loss, gradient norm or parameters were not finite (-1 if none) and
-    `nonfinite_code` what was (`nonfinite_code`)."""
+    the episodes that ended in the span (NaN where none did). `fault_update` is the index of
+    the first update whose rollout or update failed a check of `fault_code` (-1 if none) and
+    `fault_code` which check."""
     per_update = dict(per_update)
-    codes = per_update.pop("nonfinite")
+    codes = per_update.pop("fault")
     performed = per_update.pop("performed", jnp.ones(codes.shape, bool))
     episodes = jnp.sum(per_update.pop("episodes"))
     return_sum = jnp.sum(per_update.pop("return_sum"))
@@ -296,6 +301,6 @@ def summarise_updates(spec: EnvSpec, per_update: dict[str, jax.Array]) -> dict[s
     metrics["win_rate"] = win_rate if spec.has_win_rate else jnp.full_like(win_rate, jnp.nan)
     bad = performed & (codes > 0)
     first = jnp.argmax(bad)
-    metrics["nonfinite_update"] = jnp.where(jnp.any(bad), first, -1)
-    metrics["nonfinite_code"] = jnp.where(jnp.any(bad), codes[first], 0)
+    metrics["fault_update"] = jnp.where(jnp.any(bad), first, -1)
+    metrics["fault_code"] = jnp.where(jnp.any(bad), codes[first], 0)
     return metrics

@@ -191,7 +191,7 @@ def run_chunk(
     before = trainer.env_steps(state)
     start = time.perf_counter()
     state, train = trainer.train_chunk(state, updates)
-    stop_if_nonfinite(train, before // config.steps_per_update, config.seed, run_dir)
+    stop_if_faulty(train, before // config.steps_per_update, config.seed, run_dir)
     steps = trainer.env_steps(state)
     steps_per_second = (steps - before) * config.seeds / (time.perf_counter() - start)
     evaluation = trainer.evaluate(state, config.eval_episodes, seed=config.seed)
@@ -205,15 +205,16 @@ def run_chunk(
     return state
 
 
-def stop_if_nonfinite(
+def stop_if_faulty(
     train: dict[str, np.ndarray], updates_before: int, base_seed: int, run_dir: RunDir
 ) -> None:
     """Raise `CmatError` naming the first update (1-based, counted over the run) and seed whose
-    loss, gradient norm or parameters were not finite; pops the two flags from `train`."""
-    from cmat.runners.learner import NONFINITE_QUANTITIES
+    rollout or update failed a check of `cmat.runners.learner.fault_code`, and the check; pops
+    the two flags from `train`."""
+    from cmat.runners.learner import ROLLOUT_FAULTS
 
-    first = train.pop("nonfinite_update").astype(int)
-    codes = train.pop("nonfinite_code").astype(int)
+    first = train.pop("fault_update").astype(int)
+    codes = train.pop("fault_code").astype(int)
     bad = np.flatnonzero(first >= 0)
     if bad.size == 0:
         return
@@ -221,7 +222,7 @@ def stop_if_nonfinite(
     kept = (f"the last good checkpoint ({updates_before} updates) is left as it was in "
             f"{run_dir.path}" if updates_before else "no update was saved")
     raise CmatError(
-        f"non-finite {NONFINITE_QUANTITIES[codes[seed] - 1]} at update "
+        f"{ROLLOUT_FAULTS[codes[seed] - 1]} at update "
         f"{updates_before + first[seed] + 1} (seed {base_seed + seed}); training stopped and "
         f"{kept}"
     )
