@@ -40,12 +40,13 @@ class TargetGame:
 
     def __init__(
         self, agents: int = 3, choices: int = 3, length: int = 5, nan_after: int = 0,
-        closed_after: int = 0,
+        closed_after: int = 0, never_ends: bool = False,
     ) -> None:
         """`nan_after` > 0: the reward is NaN from that many steps of an instance on;
-        `closed_after` > 0: from that many steps on, agent 0 (alive) may take no action."""
+        `closed_after` > 0: from that many steps on, agent 0 (alive) may take no action;
+        `never_ends`: no step sets done, though the spec says episodes last `length` steps."""
         self.choices, self.length, self.nan_after = choices, length, nan_after
-        self.closed_after = closed_after
+        self.closed_after, self.never_ends = closed_after, never_ends
         self.spec = EnvSpec(
             env_id="jax:target", num_agents=agents, obs_dim=choices, action_dim=choices,
             discrete=True, max_episode_steps=length, has_win_rate=False,
@@ -72,7 +73,7 @@ class TargetGame:
         reward = jnp.mean((actions == state.targets).astype(jnp.float32))
         if self.nan_after:
             reward = jnp.where(state.total >= self.nan_after, jnp.nan, reward)
-        done = state.step + 1 >= self.length
+        done = (state.step + 1 >= self.length) & (not self.never_ends)
         targets = jax.random.randint(key, (self.spec.num_agents,), 0, self.choices)
         next_state = TargetState(targets, jnp.where(done, 0, state.step + 1), state.total + 1)
         return next_state, self._timestep(next_state, reward, done)
@@ -207,6 +208,28 @@ def test_a_live_agent_with_no_available_action_stops_the_run(
     assert "an action mask that allows no action to a live agent" in error, error
     update = 3 if "target" in env_id else 1
     assert f"at update {update} (seed 0)" in error, error
+
+
+def test_an_env_whose_episodes_never_end_is_warned_about_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Chunks of 10 steps per environment: no episode of 5 steps ends, so the first chunk warns
+    (once in the run) and the train rows read nan; the same env ending its episodes does not."""
+    common = ["--algo", "mappo", "--steps", "80", "--set", "num_envs=2", "rollout_length=5",
+              "log_interval=2", "eval_episodes=1"]
+    never = tmp_path / "never"
+    assert main(["train", "--env", f"jax:{HERE}:target_game", "--out", str(never), *common,
+                 "env_kwargs.never_ends=true"]) == 0
+    error = capsys.readouterr().err
+    assert error.count("warning") == 1, error
+    assert ("no episode has ended in the last 10 steps of any environment, more than its "
+            "max_episode_steps (5)") in error, error
+    train = [row for row in csv.DictReader((never / "metrics.csv").open())
+             if row["kind"] == "train"]
+    assert len(train) == 4 and all(row["episode_return"] == "nan" for row in train)
+    assert main(["train", "--env", f"jax:{HERE}:target_game", "--out", str(tmp_path / "ends"),
+                 *common]) == 0
+    assert "warning" not in capsys.readouterr().err
 
 
 def test_jaxmarl_env_is_adapted() -> None:

@@ -73,6 +73,7 @@ def train_locked(
         done = trainer.env_steps(state)
         run_dir.save_checkpoint(trainer.to_bytes(state), done)
     session = Session(run_dir, done)
+    watch = EpisodeEndWatch(trainer.env_spec.env_id, trainer.env_spec.max_episode_steps)
     remaining = (config.budget_steps - done) // config.steps_per_update
     chunks = [config.updates_per_log] * (remaining // config.updates_per_log)
     chunks += [remaining % config.updates_per_log] if remaining % config.updates_per_log else []
@@ -84,7 +85,7 @@ def train_locked(
                  desc=config.env, dynamic_ncols=True) as bar,
         ):
             for updates in chunks:
-                state = run_chunk(trainer, state, run_dir, writer, bar, updates)
+                state = run_chunk(trainer, state, run_dir, writer, bar, updates, watch)
                 session.record(trainer.env_steps(state))
                 if interrupted():
                     raise KeyboardInterrupt
@@ -182,11 +183,38 @@ def scalar_writers(
                 writer.close()
 
 
+class EpisodeEndWatch:
+    """Warns once (stderr) when no environment of any seed has ended an episode for more steps
+    than the spec's `max_episode_steps`: cmat imposes that bound only on evaluation, so an
+    environment that never sets `done` trains on with train rows whose return reads nan."""
+
+    def __init__(self, env_id: str, max_episode_steps: int) -> None:
+        self.env_id, self.max_episode_steps = env_id, max_episode_steps
+        self.steps_without_end = 0
+        self.warned = False
+
+    def chunk(self, episode_returns: np.ndarray, steps_per_env: int) -> None:
+        """After a chunk of `steps_per_env` steps per environment whose per-seed train return
+        is `episode_returns` (nan where no episode ended)."""
+        if not np.all(np.isnan(episode_returns)):
+            self.steps_without_end = 0
+            return
+        self.steps_without_end += steps_per_env
+        if self.steps_without_end > self.max_episode_steps and not self.warned:
+            self.warned = True
+            tqdm.write(
+                f"cmat: warning: {self.env_id}: no episode has ended in the last "
+                f"{self.steps_without_end:,} steps of any environment, more than its "
+                f"max_episode_steps ({self.max_episode_steps}); training ends no episode itself, "
+                f"so train rows read nan until the environment sets done", file=sys.stderr)
+
+
 def run_chunk(
     trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: ScalarWriters, bar: tqdm,
-    updates: int,
+    updates: int, watch: EpisodeEndWatch,
 ) -> TrainerState:
-    """`updates` updates, their evaluation, logs and checkpoint."""
+    """`updates` updates, their evaluation, logs and checkpoint; `watch` sees each chunk's
+    train returns."""
     config = trainer.config
     before = trainer.env_steps(state)
     start = time.perf_counter()
@@ -194,6 +222,7 @@ def run_chunk(
     stop_if_faulty(train, before // config.steps_per_update, config.seed, run_dir)
     steps = trainer.env_steps(state)
     steps_per_second = (steps - before) * config.seeds / (time.perf_counter() - start)
+    watch.chunk(np.asarray(train["episode_return"]), (steps - before) // config.num_envs)
     evaluation = trainer.evaluate(state, config.eval_episodes, seed=config.seed)
     evaluation = {**evaluation, "env_steps": train["env_steps"]}
     rows = seed_rows("train", train, config.seed) + seed_rows("eval", evaluation, config.seed)
