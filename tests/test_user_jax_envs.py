@@ -323,6 +323,23 @@ class VectorRewardOutpost(Outpost):
         return obs, state, {**rewards, "runner": jnp.full(2, rewards["runner"])}, dones, infos
 
 
+class GrowingOutpost(Outpost):
+    def step_env(self, key: jax.Array, state: Any, actions: dict[str, jax.Array]) -> Any:
+        obs, state, rewards, dones, infos = super().step_env(key, state, actions)
+        return {**obs, "runner": jnp.zeros((2, 3))}, state, rewards, dones, infos
+
+
+class StatelessStepOutpost(Outpost):
+    def step_env(self, key: jax.Array, state: Any, actions: dict[str, jax.Array]) -> Any:
+        obs, state, rewards, dones, infos = super().step_env(key, state, actions)
+        return {"scout": obs["scout"], "runner": obs["runner"]}, state, rewards, dones, infos
+
+
+class ShortMaskOutpost(Outpost):
+    def get_avail_actions(self, state: Any) -> dict[str, jax.Array]:
+        return {**super().get_avail_actions(state), "scout": jnp.ones(2, bool)}
+
+
 def zero_agents() -> TargetGame:
     game = TargetGame()
     game.spec = replace(game.spec, num_agents=0)
@@ -351,6 +368,12 @@ BROKEN = {
     "rewardless": (RewardlessOutpost, "'runner' is missing from"),
     "vector_reward": (VectorRewardOutpost, "step_env's reward of agent 'runner' has shape (2,); "
                                            "expected one number per agent"),
+    "growing_obs": (GrowingOutpost, "step_env's observation 'runner' has shape (2, 3), but "
+                                    "reset's has shape (2, 2); each must keep its size"),
+    "stateless_step": (StatelessStepOutpost, "step_env must return observations of every agent "
+                                             "and the world_state as reset does"),
+    "short_mask": (ShortMaskOutpost, "get_avail_actions gives agent 'scout' 2 entries, but its "
+                                     "action space has 3 actions"),
     "infinite_box": (lambda: Crane(infinite=True), "agent 'agent_1''s Box has an infinite bound"),
     "zero_agents": (zero_agents, "must all be >= 1"),
     "text_agents": (spec_with(num_agents="3"), "the spec's num_agents must be a whole number, "

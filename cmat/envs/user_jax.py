@@ -21,8 +21,10 @@ jitted training program as SMAX is (no host round trip per step).
 Either way the environment is checked before anything runs: `reset` and `step` are traced
 abstractly (`jax.eval_shape`: no computation, no compilation) and every array of their returns
 is compared with the spec, and `step`'s state with `reset`'s (the rollout's `lax.scan` carries
-it). A mismatch, or an exception raised while tracing the user's code, is a one-line
-`CmatError` naming the id, the function and what was found.
+it); a JaxMARL env's `step_env` observations must keep `reset`'s agents and sizes (and its
+world state), and `get_avail_actions` must give each agent one entry per action. A mismatch,
+or an exception raised while tracing the user's code, is a one-line `CmatError` naming the id,
+the function and what was found.
 """
 
 from __future__ import annotations
@@ -218,6 +220,9 @@ class JaxMarlUserEnv(JaxMarlEnv):
         if not (isinstance(step_returns, tuple) and len(step_returns) == 5):
             raise CmatError(f"{env_id}: step_env must return (obs, state, rewards, dones, "
                             f"infos), got {type(step_returns).__name__}")
+        _check_step_observations(env_id, self.agents, obs, step_returns[0])
+        if self.implements_masks and discrete:
+            self._check_mask_sizes(env_id, key)
         rewards, dones = step_returns[2], step_returns[3]
         if not isinstance(dones, dict) or "__all__" not in dones:
             raise CmatError(f"{env_id}: step_env's dones must hold '__all__', got "
@@ -244,6 +249,19 @@ class JaxMarlUserEnv(JaxMarlEnv):
             has_win_rate=self.has_win,
             state_dim=math.prod(obs["world_state"].shape) if self.has_global_state else 0,
         )
+
+    def _check_mask_sizes(self, env_id: str, key: jax.Array) -> None:
+        """CmatError where `get_avail_actions` gives an agent other than one entry per action of
+        its `Discrete` space (traced on reset's state; step's state has its type)."""
+        available = _traced(env_id, "get_avail_actions(state)",
+                            lambda key: self.env.get_avail_actions(self.env.reset(key)[1]), key)
+        for agent, size in zip(self.agents, self.action_sizes):
+            entry = available.get(agent) if isinstance(available, dict) else None
+            entries = math.prod(entry.shape) if hasattr(entry, "shape") else None
+            if entries != size:
+                found = f"{entries} entries" if entries is not None else "no entry"
+                raise CmatError(f"{env_id}: get_avail_actions gives agent {agent!r} {found}, "
+                                f"but its action space has {size} actions")
 
     def _space(self, env_id: str, agent: str) -> Any:
         try:
@@ -290,6 +308,28 @@ class JaxMarlUserEnv(JaxMarlEnv):
         if dones is None:
             return jnp.ones(len(self.agents), bool)
         return ~jnp.stack([jnp.asarray(dones[agent], bool) for agent in self.agents])
+
+
+def _check_step_observations(
+    env_id: str, agents: list[str], reset_obs: dict[str, Any], step_obs: Any
+) -> None:
+    """CmatError where `step_env`'s observations miss an agent, change an agent's size (or the
+    world state's) from `reset`'s, or drop or add a world state: the adapter pads every agent to
+    one fixed width taken from `reset`."""
+    names = [*agents, *(["world_state"] if "world_state" in reset_obs else [])]
+    if not isinstance(step_obs, dict) or any(name not in step_obs for name in names):
+        raise CmatError(f"{env_id}: step_env must return observations of every agent"
+                        f"{' and the world_state' if 'world_state' in reset_obs else ''} as reset"
+                        f" does; got {_keys(step_obs)}")
+    if "world_state" in step_obs and "world_state" not in reset_obs:
+        raise CmatError(f"{env_id}: step_env returns a world_state that reset does not; cmat "
+                        f"reads the global state from reset's observations")
+    for name in names:
+        before, after = reset_obs[name].shape, getattr(step_obs[name], "shape", None)
+        if after is None or math.prod(after) != math.prod(before):
+            shown = f"shape {tuple(after)}" if after is not None else type(step_obs[name]).__name__
+            raise CmatError(f"{env_id}: step_env's observation {name!r} has {shown}, but "
+                            f"reset's has shape {tuple(before)}; each must keep its size")
 
 
 def _overrides(env: Any, method: str) -> bool:
