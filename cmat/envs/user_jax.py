@@ -256,8 +256,9 @@ class JaxMarlUserEnv(JaxMarlEnv):
         available = _traced(env_id, "get_avail_actions(state)",
                             lambda key: self.env.get_avail_actions(self.env.reset(key)[1]), key)
         for agent, size in zip(self.agents, self.action_sizes):
-            entry = available.get(agent) if isinstance(available, dict) else None
-            entries = math.prod(entry.shape) if hasattr(entry, "shape") else None
+            shape = getattr(available.get(agent) if isinstance(available, dict) else None,
+                            "shape", None)
+            entries = math.prod(shape) if shape is not None else None
             if entries != size:
                 found = f"{entries} entries" if entries is not None else "no entry"
                 raise CmatError(f"{env_id}: get_avail_actions gives agent {agent!r} {found}, "
