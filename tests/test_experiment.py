@@ -841,3 +841,24 @@ def test_a_file_where_a_directory_is_needed_is_one_error_line_before_any_work(
         assert main(["experiment", str(path), *out, flag, str(target), *options]) == 2
         assert message in one_error_line(capsys.readouterr().err)
         assert sorted(tmp_path.iterdir()) == before and file.read_text() == "mine"
+
+
+def test_the_readme_spec_example_plans(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's spec-format block is a valid spec: it loads with the values its comments
+    state, and `--dry-run` plans every cell (the unavailable env skipped) without an error."""
+    readme = (REPO / "README.md").read_text()
+    after = readme[readme.index("A spec is one YAML file"):]
+    block = after[after.index("```yaml\n") + 8:after.index("\n```", after.index("```yaml"))]
+    path = tmp_path / "readme_spec.yaml"
+    path.write_text(block + "\n")
+    spec = load_spec(path)
+    assert (spec.name, spec.seeds, spec.seeds_per_run, spec.score_window) == ("my_grid", 3, 3, 0.1)
+    assert [env.steps for env in spec.envs] == [200000, 500000, 200000]
+    assert [v.name for v in spec.variants] == ["default", "last", "m_half", "finetune_action"]
+    assert spec.variant("finetune_action").base == "default"
+    assert main(["experiment", str(path), "--out", str(tmp_path / "out"), "--dry-run"]) == 0
+    planned = capsys.readouterr().out
+    assert "new     smax_2s3z/finetune_action/cmat-s0-2" in planned, planned
+    assert "new     smax_3m/m_half" not in planned and "unavailable" in planned, planned

@@ -1,36 +1,10 @@
 """An experiment spec: a grid of environments × algorithms × variants × seeds, read from YAML.
 
-```yaml
-name: smoke                       # default: the file's stem
-steps: 2000                       # env steps per seed of every run (an env or variant may override)
-seeds: 2                          # seeds seed .. seed+seeds-1 of every cell
-seed: 0
-seeds_per_run: 2                  # seeds trained together in one (vmapped) run; default: all
-set: {num_envs: 4, ppo: {epochs: 2}}      # config overrides for every run (or a list of k=v)
-envs:
-  - matrix:fig1
-  - {id: smax:MMM2, steps: 10000000, set: [...], label: MMM2, unavailable: "why"}
-algos: [cmat, mat]
-variants:                         # default: {default: {}}
-  default: {}
-  m_half: {algos: [cmat], set: {network.consensus_iterations: n/2}, figure: ablation,
-           label: "m = n/2"}
-  finetune_action: {algos: [cmat], from: default, finetune: action, steps: 1000,
-                    label: "CMAT-finetune (action)"}
-  tau_one: {algos: [cmat], envs: [matrix:fig1], set: {ppo.target_tau: 1.0}}
-bootstrap_reps: 2000              # bootstrap replications of the aggregate statistics
-score_window: 0.1                 # a seed's score: mean greedy evaluation over its last 10% of
-                                  # env steps (default 0: its last evaluation only)
-```
-
-A variant with `from` is a fine-tuning stage: it starts from the finished run of variant `from`
-with the same environment, algorithm and seeds (`cmat finetune`), and its `set` applies on top
-of that run's config. `figure` puts a variant in the Fig. 3-style figure (`main`, the default),
-the Fig. 4-style one (`ablation`, which draws CMAT lines only), both (`[main, ablation]`, e.g. the
-default variant as the ablation's reference) or neither (`none`). `envs` restricts a variant to
-some of the spec's environments (default: all of them); the aggregate statistics then compare
-only the lines that run on every environment. An env with `unavailable` is reported and
-skipped without being tried.
+The format, every key with its default and what a variant or a fine-tuning stage (`from`) means,
+is the README's "Experiments: one command for a grid" (tests/test_experiment.py loads and plans
+its example). `load_spec` checks a file against it: an unknown or duplicate key, a wrong type or
+value, a `from` that names no variant or closes a cycle, or an env no variant runs on is a
+one-line `CmatError` naming the file and the key.
 """
 
 from __future__ import annotations
