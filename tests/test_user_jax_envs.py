@@ -10,6 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -340,6 +341,68 @@ class ShortMaskOutpost(Outpost):
         return {**super().get_avail_actions(state), "scout": jnp.ones(2, bool)}
 
 
+@chex.dataclass
+class ChexState:
+    level: jax.Array
+
+
+class ChexOutpost(Outpost):
+    """Outpost with its state in a chex dataclass, which flax cannot serialise."""
+
+    def reset(self, key: jax.Array) -> tuple[dict[str, jax.Array], Any]:
+        return self.get_obs(jnp.int32(0)), ChexState(level=jnp.int32(0))
+
+    def step_env(self, key: jax.Array, state: Any, actions: dict[str, jax.Array]) -> Any:
+        obs, level, rewards, dones, infos = super().step_env(key, state.level, actions)
+        return obs, ChexState(level=level), rewards, dones, infos
+
+    def get_avail_actions(self, state: Any) -> dict[str, jax.Array]:
+        return super().get_avail_actions(state.level)
+
+
+@jax.tree_util.register_pytree_node_class
+class Counter:
+    """A pytree class of the user's own, unknown to flax serialisation."""
+
+    def __init__(self, count: jax.Array) -> None:
+        self.count = count
+
+    def tree_flatten(self) -> tuple[tuple[jax.Array], None]:
+        return (self.count,), None
+
+    @classmethod
+    def tree_unflatten(cls, aux: None, children: tuple[jax.Array]) -> Counter:
+        return cls(*children)
+
+
+class CounterStateGame(TargetGame):
+    def reset(self, key: jax.Array) -> Any:
+        return Counter(jnp.int32(0)), super().reset(key)[1]
+
+    def step(self, key: jax.Array, state: Any, actions: jax.Array) -> Any:
+        inner, timestep = super().step(key, TargetState(jnp.zeros(3, jnp.int32), state.count,
+                                                        state.count), actions)
+        return Counter(inner.step), timestep
+
+
+class NumberedOutpost(Outpost):
+    def __init__(self) -> None:
+        super().__init__()
+        self.agents = [0, 1]
+
+
+class ArrayRewardOutpost(Outpost):
+    def step_env(self, key: jax.Array, state: Any, actions: dict[str, jax.Array]) -> Any:
+        obs, state, rewards, dones, infos = super().step_env(key, state, actions)
+        return obs, state, jnp.stack([rewards["scout"], rewards["runner"]]), dones, infos
+
+
+class ArrayDoneOutpost(Outpost):
+    def step_env(self, key: jax.Array, state: Any, actions: dict[str, jax.Array]) -> Any:
+        obs, state, rewards, dones, infos = super().step_env(key, state, actions)
+        return obs, state, rewards, jnp.stack([dones["scout"], dones["runner"]]), infos
+
+
 def zero_agents() -> TargetGame:
     game = TargetGame()
     game.spec = replace(game.spec, num_agents=0)
@@ -374,6 +437,17 @@ BROKEN = {
                                              "and the world_state as reset does"),
     "short_mask": (ShortMaskOutpost, "get_avail_actions gives agent 'scout' 2 entries, but its "
                                      "action space has 3 actions"),
+    "chex_state": (ChexOutpost, "the env's state (ChexState) cannot be saved in a checkpoint "
+                                "(TypeError: can not serialize"),
+    "pytree_state": (CounterStateGame, "the env's state (Counter) cannot be saved in a "
+                                       "checkpoint"),
+    "numbered_agents": (NumberedOutpost, "env.agents must be names (str), as JaxMARL's envs use "
+                                         "them to key observations, actions, rewards and dones; "
+                                         "got 0 (int)"),
+    "array_rewards": (ArrayRewardOutpost, "step_env's rewards must be a dict keyed by agent "
+                                          "name, got an array of shape (2,) (float32)"),
+    "array_dones": (ArrayDoneOutpost, "step_env's dones must be a dict keyed by agent name (and "
+                                      "__all__), got an array of shape (2,) (bool)"),
     "infinite_box": (lambda: Crane(infinite=True), "agent 'agent_1''s Box has an infinite bound"),
     "zero_agents": (zero_agents, "must all be >= 1"),
     "text_agents": (spec_with(num_agents="3"), "the spec's num_agents must be a whole number, "

@@ -34,6 +34,7 @@ import math
 import numbers
 from typing import Any, cast
 
+import flax.serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -122,6 +123,31 @@ def check_marl_env(env: MarlEnv, env_id: str) -> None:
     ):
         raise CmatError(f"{env_id}: step returns a state unlike reset's (its structure, shapes "
                         f"or dtypes differ); the rollout carries one fixed state type")
+    _check_checkpointable(env_id, reset_state)
+
+
+def _check_checkpointable(env_id: str, state: Any) -> None:
+    """CmatError where a state of `state`'s abstract shapes (zeros) does not survive a
+    checkpoint's round trip (`cmat.runners.base.state_to_bytes`: flax serialization to
+    msgpack and back): a run saves its environments' states after every chunk. States whose
+    dtypes numpy cannot hold (typed PRNG keys) are left to the save itself."""
+    try:
+        zeros = jax.tree.map(lambda leaf: np.zeros(leaf.shape, leaf.dtype), state)
+    except TypeError:
+        return
+    try:
+        data = flax.serialization.msgpack_serialize(flax.serialization.to_state_dict(zeros))
+        restored = flax.serialization.from_state_dict(
+            zeros, flax.serialization.msgpack_restore(data))
+        structure: Any = jax.tree.structure(restored)
+        survived = structure == jax.tree.structure(zeros)
+        problem = "" if survived else "it comes back with another structure"
+    except Exception as error:  # flax on the user's state type: any failure is the finding
+        problem = f"{type(error).__name__}: {str(error).strip().splitlines()[0]}"
+    if problem:
+        raise CmatError(f"{env_id}: the env's state ({type(state).__name__}) cannot be saved in a "
+                        f"checkpoint ({problem}); use a flax.struct.dataclass, a NamedTuple, a "
+                        f"dict or arrays")
 
 
 SPEC_FIELD_KINDS: dict[str, tuple[type | tuple[type, ...], str]] = {
@@ -179,6 +205,11 @@ class JaxMarlUserEnv(JaxMarlEnv):
         self.agents: list[str] = list(env.agents)
         if not self.agents:
             raise CmatError(f"{env_id}: the env has no agents")
+        named = next((agent for agent in self.agents if not isinstance(agent, str)), None)
+        if named is not None:
+            raise CmatError(f"{env_id}: env.agents must be names (str), as JaxMARL's envs use "
+                            f"them to key observations, actions, rewards and dones; got "
+                            f"{named!r} ({type(named).__name__})")
         key = jax.random.PRNGKey(0)
         obs, _ = _traced(env_id, "reset(key)", env.reset, key)
         if not isinstance(obs, dict) or any(agent not in obs for agent in self.agents):
@@ -224,11 +255,16 @@ class JaxMarlUserEnv(JaxMarlEnv):
         if self.implements_masks and discrete:
             self._check_mask_sizes(env_id, key)
         rewards, dones = step_returns[2], step_returns[3]
-        if not isinstance(dones, dict) or "__all__" not in dones:
+        for name, value in (("rewards", rewards), ("dones", dones)):
+            if not isinstance(value, dict):
+                raise CmatError(f"{env_id}: step_env's {name} must be a dict keyed by agent name"
+                                f"{' (and __all__)' if name == 'dones' else ''}, got "
+                                f"{_described(value)}")
+        if "__all__" not in dones:
             raise CmatError(f"{env_id}: step_env's dones must hold '__all__', got "
                             f"{_keys(dones)}")
         missing = [agent for agent in self.agents
-                   if not isinstance(rewards, dict) or agent not in rewards or agent not in dones]
+                   if agent not in rewards or agent not in dones]
         if missing:
             raise CmatError(f"{env_id}: step_env's rewards and dones must hold every agent; "
                             f"{missing[0]!r} is missing from {_keys(rewards)} or {_keys(dones)}")
@@ -336,6 +372,13 @@ def _check_step_observations(
 def _overrides(env: Any, method: str) -> bool:
     """Whether the env's class implements `method` beyond JaxMARL's `MultiAgentEnv`."""
     return getattr(type(env), method, None) not in (None, getattr(MultiAgentEnv, method, None))
+
+
+def _described(value: Any) -> str:
+    """`value` for an error: an array as its shape and dtype, anything else as its type."""
+    if hasattr(value, "shape") and hasattr(value, "dtype"):
+        return f"an array of shape {tuple(value.shape)} ({value.dtype})"
+    return type(value).__name__
 
 
 def _keys(value: Any) -> str:

@@ -73,7 +73,7 @@ def train_locked(
         done = trainer.env_steps(state)
         run_dir.save_checkpoint(trainer.to_bytes(state), done)
     session = Session(run_dir, done)
-    watch = EpisodeEndWatch(trainer.env_spec.env_id, trainer.env_spec.max_episode_steps)
+    watch = EpisodeEndWatch(config.env, trainer.env_spec.max_episode_steps)
     remaining = (config.budget_steps - done) // config.steps_per_update
     chunks = [config.updates_per_log] * (remaining // config.updates_per_log)
     chunks += [remaining % config.updates_per_log] if remaining % config.updates_per_log else []
