@@ -312,8 +312,9 @@ def test_a_carried_export_continues_partial_runs_and_stages_without_retraining(
             == (out / CMAT_RUN / "checkpoints" / "latest.ckpt").read_bytes())
     assert not (moved / MAT_RUN).exists()
     assert "carried 1 runs with their checkpoints" in capsys.readouterr().out
-    planned = experiment(str(longer), "--out", str(moved), "--dry-run")
-    assert f"resume  {CMAT_RUN.removeprefix('runs/')}: at 1000 of 2000" in planned.stdout
+    assert main(["experiment", str(longer), "--out", str(moved), "--dry-run"]) == 0
+    planned = capsys.readouterr().out
+    assert f"resume  {CMAT_RUN.removeprefix('runs/')}: at 1000 of 2000" in planned
     shutil.rmtree(out / MAT_RUN)
     shutil.copytree(finished_mat, out / MAT_RUN)
 
@@ -374,37 +375,40 @@ def test_corrupt_and_partial_run_directories_are_reported_and_redone(
 
 
 def test_plan_changes_are_detected_without_running(
-    grid: tuple[Path, bytes, str], tmp_path: Path
+    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = copy_grid(grid, tmp_path)
     (out / STAGE_RUN / "metrics.csv").unlink()
     spec = yaml.safe_load(SMOKE.read_text())
     longer = tmp_path / "longer.yaml"
     longer.write_text(yaml.safe_dump({**spec, "steps": 2000}))
-    done = experiment(str(longer), "--out", str(out), "--dry-run")
-    assert done.returncode == 0, done.stderr
-    assert f"resume  {CMAT_RUN.removeprefix('runs/')}: at 1000 of 2000 env steps" in done.stdout
+    assert main(["experiment", str(longer), "--out", str(out), "--dry-run"]) == 0
+    planned = capsys.readouterr().out
+    assert f"resume  {CMAT_RUN.removeprefix('runs/')}: at 1000 of 2000 env steps" in planned
     assert (f"redo    {STAGE_RUN.removeprefix('runs/')}: its base run is not complete yet"
-            in done.stdout)
+            in planned)
     spec["set"]["ppo"]["epochs"] = 3
     changed = tmp_path / "changed.yaml"
     changed.write_text(yaml.safe_dump(spec))
-    done = experiment(str(changed), "--out", str(out), "--dry-run")
+    assert main(["experiment", str(changed), "--out", str(out), "--dry-run"]) == 0
+    planned = capsys.readouterr().out
     assert (f"redo    {MAT_RUN.removeprefix('runs/')}: config differs from the spec "
-            f"(ppo.epochs: 2, spec 3)") in done.stdout
+            f"(ppo.epochs: 2, spec 3)") in planned
     assert not (out / "discarded").exists()
 
-    done = experiment(str(SMOKE), "--out", str(out), "--dry-run")
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--dry-run"]) == 0
+    planned = capsys.readouterr().out
     assert (f"redo    {STAGE_RUN.removeprefix('runs/')}: metrics.csv lacks the eval rows of its "
-            f"checkpoint at 500 env steps") in done.stdout
+            f"checkpoint at 500 env steps") in planned
 
     metrics = out / MAT_RUN / "metrics.csv"
     lines = metrics.read_text().split("\n")
     lines[2] = lines[2].replace(",", ",word,", 1).rsplit(",", 1)[0]
     metrics.write_text("\n".join(lines))
-    done = experiment(str(SMOKE), "--out", str(out), "--dry-run")
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--dry-run"]) == 0
+    planned = capsys.readouterr().out
     assert (f"redo    {MAT_RUN.removeprefix('runs/')}: unreadable {metrics}, line 3: seed 'word' "
-            f"is not a whole number") in done.stdout
+            f"is not a whole number") in planned
 
 
 def test_unavailable_environments_are_reported_and_skipped(

@@ -80,7 +80,7 @@ def pmat_team() -> Team:
 
 
 @pytest.fixture(scope="module", params=[
-    ("mat", "matrix:fig1"), ("mat", "smax:3m"), ("pmat", "matrix:fig1"),
+    ("mat", "smax:3m"), ("pmat", "matrix:fig1"),
     pytest.param(("pmat", "smax:3m"), marks=pytest.mark.slow),  # MAT's network on SMAX: above
 ], ids=lambda p: f"{p[0]}-{p[1]}")
 def trained(request: pytest.FixtureRequest) -> tuple[str, Any, Any, dict[str, np.ndarray]]:

@@ -10,8 +10,6 @@ import math
 from pathlib import Path
 from typing import Any
 
-from matplotlib.figure import Figure
-
 from cmat.experiments.lines import (
     METRIC_NAMES,
     Line,
@@ -22,7 +20,7 @@ from cmat.experiments.lines import (
 )
 from cmat.experiments.plan import Plan
 from cmat.experiments.spec import EnvEntry, ExperimentSpec
-from cmat.plots import marker
+from cmat.plots import marker, new_figure
 
 
 def draw(
@@ -38,7 +36,7 @@ def draw(
     envs = panel_envs(plan.spec, figure_kind)
     columns = min(3, len(envs))
     rows = math.ceil(len(envs) / columns)
-    figure = Figure(figsize=(5.2 * columns, 3.9 * rows + 0.9), layout="constrained")
+    figure = new_figure(figsize=(5.2 * columns, 3.9 * rows + 0.9), layout="constrained")
     axes_grid = figure.subplots(rows, columns, squeeze=False)
     palette = [f"C{i}" for i in range(10)]
     colors: dict[str, str] = {}
