@@ -275,13 +275,13 @@ def test_an_export_keeps_results_not_checkpoints_and_continues_the_grid_elsewher
 
     elsewhere = Path(shutil.copytree(exported, tmp_path / "elsewhere"))
     shutil.rmtree(elsewhere / STAGE_RUN)
-    done = experiment(str(SMOKE), "--out", str(elsewhere))
-    assert done.returncode == 0, done.stdout + done.stderr
+    capsys.readouterr()
+    assert main(["experiment", str(SMOKE), "--out", str(elsewhere)]) == 0
+    done = capsys.readouterr().out
     cmat, mat, stage = (run.removeprefix("runs/") for run in (CMAT_RUN, MAT_RUN, STAGE_RUN))
-    assert (f"redo    {cmat}: exported without its checkpoint, which {stage} needs"
-            in done.stdout)
-    assert f"reuse   {mat}: complete at 1000 env steps (exported" in done.stdout
-    assert done.stdout.index(f"[start] {cmat}") < done.stdout.index(f"[start] {stage}")
+    assert f"redo    {cmat}: exported without its checkpoint, which {stage} needs" in done
+    assert f"reuse   {mat}: complete at 1000 env steps (exported" in done
+    assert done.index(f"[start] {cmat}") < done.index(f"[start] {stage}")
     retrained = RunDir(elsewhere / CMAT_RUN).read_metrics()
     assert [row["episode_return"] for row in retrained] == [
         row["episode_return"] for row in RunDir(out / CMAT_RUN).read_metrics()]
@@ -324,12 +324,13 @@ def test_a_carried_export_continues_partial_runs_and_stages_without_retraining(
     assert (committed / CMAT_RUN / "checkpoints" / "latest.ckpt").is_file()
     assert not (committed / MAT_RUN / "checkpoints" / "latest.ckpt").exists()
     elsewhere = Path(shutil.copytree(committed, tmp_path / "elsewhere"))
-    done = experiment(str(SMOKE), "--out", str(elsewhere), "--export", str(committed),
-                      "--carry")
-    assert done.returncode == 0, done.stdout + done.stderr
-    assert f"[start] {CMAT_RUN.removeprefix('runs/')}" not in done.stdout
+    capsys.readouterr()
+    assert main(["experiment", str(SMOKE), "--out", str(elsewhere), "--export", str(committed),
+                 "--carry"]) == 0
+    done = capsys.readouterr().out
+    assert f"[start] {CMAT_RUN.removeprefix('runs/')}" not in done
     assert checkpoint_steps(elsewhere / STAGE_RUN) == 500
-    assert not list(committed.rglob("*.ckpt")) and "carried 0 runs" in done.stdout
+    assert not list(committed.rglob("*.ckpt")) and "carried 0 runs" in done
 
     assert main(["experiment", str(SMOKE), "--out", str(out), "--carry"]) == 2
     assert "--carry applies to --export only" in one_error_line(capsys.readouterr().err)
@@ -353,7 +354,7 @@ def test_partial_runs_start_first_and_stages_after_their_base(
 
 
 def test_corrupt_and_partial_run_directories_are_reported_and_redone(
-    grid: tuple[Path, bytes, str], tmp_path: Path
+    grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = copy_grid(grid, tmp_path)
     checkpoint = out / MAT_RUN / "checkpoints" / "latest.ckpt"
@@ -362,12 +363,12 @@ def test_corrupt_and_partial_run_directories_are_reported_and_redone(
     shutil.rmtree(out / STAGE_RUN / "checkpoints")
     reused = (out / CMAT_RUN / "checkpoints" / "latest.ckpt").read_bytes()
 
-    done = experiment(str(SMOKE), "--out", str(out))
-    assert done.returncode == 0, done.stdout + done.stderr
+    assert main(["experiment", str(SMOKE), "--out", str(out)]) == 0
+    done = capsys.readouterr().out
     mat, stage = MAT_RUN.removeprefix("runs/"), STAGE_RUN.removeprefix("runs/")
-    assert f"redo    {mat}: corrupt checkpoint: {checkpoint} (checksum mismatch)" in done.stdout
-    assert f"redo    {stage}: no checkpoint in {out / STAGE_RUN}" in done.stdout
-    assert f"[start] {mat} (redo" in done.stdout and f"[start] {stage} (redo" in done.stdout
+    assert f"redo    {mat}: corrupt checkpoint: {checkpoint} (checksum mismatch)" in done
+    assert f"redo    {stage}: no checkpoint in {out / STAGE_RUN}" in done
+    assert f"[start] {mat} (redo" in done and f"[start] {stage} (redo" in done
     assert len(list((out / "discarded").iterdir())) == 2
     assert checkpoint_steps(out / MAT_RUN) == 1000 and checkpoint_steps(out / STAGE_RUN) == 500
     assert (out / CMAT_RUN / "checkpoints" / "latest.ckpt").read_bytes() == reused
