@@ -3,8 +3,10 @@ run directories redone, unavailable environments skipped, bad specs rejected, st
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import fcntl
+import io
 import json
 import os
 import shutil
@@ -118,9 +120,10 @@ def grid(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, str]:
             os.killpg(process.pid, signal.SIGKILL)
     assert checkpoint_steps(out / CMAT_RUN) == 1000
     finished = (out / CMAT_RUN / "checkpoints" / "latest.ckpt").read_bytes()
-    done = experiment(str(SMOKE), "--out", str(out))
-    assert done.returncode == 0, done.stdout + done.stderr
-    return out, finished, done.stdout
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["experiment", str(SMOKE), "--out", str(out)]) == 0
+    return out, finished, printed.getvalue()
 
 
 def test_killed_grid_resumes_without_redoing_finished_runs(grid: tuple[Path, bytes, str]) -> None:
