@@ -105,15 +105,15 @@ def joint_distribution(
 ) -> jax.Array:
     """P(a1, a2) = Σ_z π_c(z | O) π_1(a1 | O, z) π_2(a2 | O, z) (a deterministic consensus: the
     single product)."""
-    codes = algorithm.network.config.consensus_codes if algorithm.stochastic else 1
-    joint = jnp.zeros((mask.shape[-1],) * 2)
-    for code in range(codes):
-        latent = jnp.asarray(code) if algorithm.stochastic else None
+    def given(latent: jax.Array | None) -> jax.Array:
         output = algorithm.network.apply(params, obs, mask, latent=latent)
         p = jax.nn.softmax(output.action_params, axis=-1)
         weight = jnp.exp(output.latent_log_prob) if algorithm.stochastic else 1.0
-        joint = joint + weight * jnp.outer(p[0], p[1])
-    return joint
+        return weight * jnp.outer(p[0], p[1])
+
+    if not algorithm.stochastic:
+        return given(None)
+    return jax.vmap(given)(jnp.arange(algorithm.network.config.consensus_codes)).sum(axis=0)
 
 
 @pytest.mark.parametrize("policy", ["categorical", "deterministic"])
