@@ -366,7 +366,6 @@ def with_eval_iterations(
 
 
 def finetune_command(args: argparse.Namespace) -> None:
-    from cmat.runners.base import restore_run
     from cmat.runners.finetune import finetune_config, finetune_start
 
     if args.steps is not None and args.steps <= 0:
@@ -375,6 +374,8 @@ def finetune_command(args: argparse.Namespace) -> None:
     source_config = source_dir.config()
     config, sources = finetune_config(source_config, source_dir.path, args.mode, args.steps,
                                       args.set, source_dir.sources())
+    from cmat.runners.base import restore_run
+
     source_state, source_steps = restore_run(source_dir, build_trainer(source_config))
     trainer = build_trainer(config)
     state = finetune_start(trainer, source_state)

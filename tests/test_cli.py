@@ -308,6 +308,36 @@ def test_usage_errors_are_one_error_line(
     assert message in one_error_line(capsys.readouterr().err)
 
 
+@pytest.mark.parametrize("argv", [
+    ["--help"],
+    ["train", "--help"],
+    ["train", "--algo", "nosuch"],
+    ["train", "--config", "{bad}"],
+    ["train", "--set", "ppo.epochs=abc"],
+    ["experiment", "{bad}"],
+    ["experiment", "{spec}", "--out", "{tmp}/grid"],
+    ["eval", "--run", "{tmp}/missing"],
+    ["finetune", "--from", "{tmp}/missing", "--mode", "consensus"],
+    ["plot", "{tmp}/missing", "--out", "{tmp}/plot.png"],
+])
+def test_input_errors_and_help_come_before_jax_is_imported(argv: list[str], tmp_path: Path) -> None:
+    """Importing JAX and the networks takes seconds: the CLI's help and its reports of bad
+    input (configs, specs, missing runs) must not wait for it."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("ppo: [unclosed\n")
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("name: x\nsteps: 100\nenvs: [matrix:fig1]\nalgos: [cmat, nosuch]\n")
+    argv = [a.format(bad=bad, spec=spec, tmp=tmp_path) for a in argv]
+    probe = ("import sys\nfrom cmat.cli import main\n"
+             "try:\n    code = main(sys.argv[1:])\nexcept SystemExit as exit:\n"
+             "    code = exit.code\n"
+             "print('jax imported' if 'jax' in sys.modules else 'no jax', code)\n")
+    result = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True,
+                            text=True, timeout=120)
+    assert result.stdout.splitlines()[-1] == f"no jax {0 if argv[-1] == '--help' else 2}", (
+        result.stderr)
+
+
 def test_out_pointing_at_a_run_changes_nothing(
     trained: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -42,6 +42,10 @@ def test_config_with_an_unknown_algorithm_is_one_error(
     assert capsys.readouterr().err.count("\n") == 1
 
 
+def test_each_registered_name_is_its_class_name() -> None:
+    assert all(algorithm_class(name).name == name for name in algorithm_names())
+
+
 CHANGED_NETWORK_FIELDS = {
     "n_embd": 32, "n_head": 2, "n_block": 2, "compressor_heads": 2, "consensus_iterations": 1,
     "consensus_source": "last", "consensus_policy": "categorical", "consensus_codes": 4,

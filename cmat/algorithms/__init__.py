@@ -10,23 +10,28 @@ from __future__ import annotations
 
 import functools
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from cmat.algorithms.base import Algorithm
-from cmat.config import NetworkConfig, PPOConfig, TrainConfig
-from cmat.envs.protocol import EnvSpec
+from cmat.config import PPOConfig
 from cmat.errors import CmatError
 
-ALGORITHM_CLASSES = (
-    "cmat.algorithms.cmat:CMAT",
-    "cmat.algorithms.mat:MAT",
-    "cmat.algorithms.pmat:PMAT",
-    "cmat.algorithms.triple_bert:TripleBERT",
-    "cmat.algorithms.happo:HAPPO",
-    "cmat.algorithms.mappo:MAPPO",
-    "cmat.algorithms.sable:Sable",
-)
-"""Where each algorithm's class lives, in the order `cmat config` and error messages list them."""
+if TYPE_CHECKING:
+    from cmat.algorithms.base import Algorithm
+    from cmat.config import NetworkConfig, TrainConfig
+    from cmat.envs.protocol import EnvSpec
+
+ALGORITHM_CLASSES = {
+    "cmat": "cmat.algorithms.cmat:CMAT",
+    "mat": "cmat.algorithms.mat:MAT",
+    "pmat": "cmat.algorithms.pmat:PMAT",
+    "triple_bert": "cmat.algorithms.triple_bert:TripleBERT",
+    "happo": "cmat.algorithms.happo:HAPPO",
+    "mappo": "cmat.algorithms.mappo:MAPPO",
+    "sable": "cmat.algorithms.sable:Sable",
+}
+"""Each algorithm's name and where its class lives, in the order `cmat config` and error messages
+list them. The names are here, not read from the classes, so that the CLI can list them and
+check a config's `algo` without importing JAX."""
 
 OPTION_CAPABILITIES = {
     "network.consensus_policy": ("consensus", "deterministic"),
@@ -40,27 +45,24 @@ OPTION_CAPABILITIES = {
 algorithm accepts)."""
 
 
-@functools.cache
 def registry() -> dict[str, type[Algorithm]]:
-    """Every algorithm's class by its declared `name` (the modules imported on first use)."""
-    classes: dict[str, type[Algorithm]] = {}
-    for location in ALGORITHM_CLASSES:
-        module_name, _, class_name = location.partition(":")
-        cls = getattr(importlib.import_module(module_name), class_name)
-        classes[cls.name] = cls
-    return classes
+    """Every algorithm's class by its name (the modules imported on first use)."""
+    return {name: algorithm_class(name) for name in ALGORITHM_CLASSES}
 
 
 def algorithm_names() -> tuple[str, ...]:
-    return tuple(registry())
+    return tuple(ALGORITHM_CLASSES)
 
 
+@functools.cache
 def algorithm_class(name: str) -> type[Algorithm]:
-    """The class that implements the named algorithm; CmatError for an unknown name."""
-    classes = registry()
-    if name not in classes:
-        raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(classes)}")
-    return classes[name]
+    """The class that implements the named algorithm, its module imported on first use;
+    CmatError for an unknown name."""
+    if name not in ALGORITHM_CLASSES:
+        raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(ALGORITHM_CLASSES)}")
+    module_name, _, class_name = ALGORITHM_CLASSES[name].partition(":")
+    cls: type[Algorithm] = getattr(importlib.import_module(module_name), class_name)
+    return cls
 
 
 def reference_defaults(name: str) -> dict[str, Any]:

@@ -1,6 +1,8 @@
 """Environment registry: `make_env("PREFIX:NAME", **options)` builds any supported `MarlEnv`.
 
-Suites are imported on first use, so matrix games never pay for importing JaxMARL.
+Suites are imported on first use, so matrix games never pay for importing JaxMARL, and JAX
+itself is first imported when an environment is built: config and spec errors are reported
+without it.
 """
 
 from __future__ import annotations
@@ -10,20 +12,19 @@ import importlib.util
 import inspect
 from collections.abc import Callable, Iterable
 from functools import partial
-from typing import Any
-
-import jax
-import jax.numpy as jnp
+from typing import TYPE_CHECKING, Any
 
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
 from cmat.envs.suites import ENV_PREFIXES, HOST_PREFIXES
 from cmat.errors import CmatError, SuiteUnavailable
 
+if TYPE_CHECKING:
+    import jax
+
 __all__ = [
     "ENV_PREFIXES", "HOST_PREFIXES", "AgentIdWrapper", "EnvSpec", "MarlEnv", "TimeStep", "make_env",
     "probe_env",
 ]
-
 
 
 class AgentIdWrapper:
@@ -44,6 +45,8 @@ class AgentIdWrapper:
         return state, self._with_id(timestep)
 
     def _with_id(self, timestep: TimeStep) -> TimeStep:
+        import jax.numpy as jnp
+
         ids = jnp.eye(self.env.spec.num_agents, dtype=timestep.obs.dtype)
         return timestep._replace(obs=jnp.concatenate([timestep.obs, ids], axis=-1))
 

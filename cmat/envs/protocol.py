@@ -7,9 +7,10 @@ Agents are always the leading axis of per-agent arrays.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
-import jax
+if TYPE_CHECKING:
+    import jax
 
 
 @dataclass(frozen=True)

@@ -13,14 +13,17 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from cmat.experiments.lines import Line
 from cmat.experiments.spec import ExperimentSpec
 
 
 def iqm(scores: np.ndarray) -> np.ndarray:
-    """Interquartile mean over the last two axes (runs × tasks); rliable's aggregate_iqm."""
+    """Interquartile mean over the last two axes (runs × tasks); rliable's aggregate_iqm.
+    (scipy.stats is imported here, not with the module: it takes seconds, and a spec error is
+    reported before any statistic is needed.)"""
+    from scipy import stats
+
     flat = scores.reshape(*scores.shape[:-2], -1)
     mean: np.ndarray = stats.trim_mean(flat, proportiontocut=0.25, axis=-1)
     return mean

@@ -15,8 +15,6 @@ import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import jax
-
 from cmat.algorithms import algorithm_class, check_config
 from cmat.config import ConfigSources, TrainConfig, validate
 from cmat.errors import CmatError
@@ -71,6 +69,8 @@ def finetune_start(trainer: Trainer, source: TrainerState) -> TrainerState:
     """The first state of a fine-tuning run: `trainer`'s fresh state carrying the source
     run's parameters, target critic and value normaliser (`source`, its checkpoint's state),
     with a fresh optimizer state for `trainer`'s masked optimizer."""
+    import jax
+
     fresh = trainer.init()
     learner = dataclasses.replace(
         fresh.learner,
