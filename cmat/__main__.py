@@ -32,6 +32,6 @@ if os.environ.get("CMAT_PARENT_PID", "").isdigit():
     die_with_parent(int(os.environ["CMAT_PARENT_PID"]))
 if os.environ.get("CMAT_CORES"):
     pin_to_cores(os.environ["CMAT_CORES"])
-from cmat.cli import main  # noqa: E402 (after the pinning, before JAX starts its threads)
+from cmat.cli import run  # noqa: E402 (after the pinning, before JAX starts its threads)
 
-sys.exit(main())
+run()

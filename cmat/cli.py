@@ -212,6 +212,20 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def run() -> NoReturn:
+    """The `cmat` and `python -m cmat` entry point: `main`'s exit code. After an interrupt
+    the process ends without Python's finalisation: a Ctrl-C during a compile or a chunk
+    leaves XLA's threads running, and tearing the interpreter down under them crashed the
+    process (a segmentation fault or an abort, where 130 was due). Everything a run keeps is
+    already written by then."""
+    code = main()
+    if code == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 def fail(message: str) -> int:
     print(f"cmat: error: {' '.join(message.split())}", file=sys.stderr)
     return 2
@@ -293,9 +307,10 @@ def train_into(
     trainer: Trainer, run_dir: RunDir, resume: bool, start: TrainerState | None = None
 ) -> None:
     """`run_training`, telling the user how to continue if they interrupt it. A new run that
-    stops on a CmatError before its first chunk is written (an environment that fails at its
-    first steps, a non-finite first update) leaves no directory behind: this process made it
-    and it holds nothing but the config and the initial checkpoint."""
+    stops on a CmatError or an interrupt before its first chunk is written (an environment that
+    fails at its first steps, a non-finite first update, Ctrl-C during the first compile)
+    leaves no directory behind: this process made it and it holds nothing but the config and
+    the initial checkpoint."""
     try:
         run_training(trainer, run_dir, resume=resume, start=start)
     except CmatError as error:
@@ -304,8 +319,13 @@ def train_into(
         shutil.rmtree(run_dir.path, ignore_errors=True)
         raise CmatError(f"{error}; the new run directory {run_dir.path} was removed") from None
     except KeyboardInterrupt:
-        print(f"cmat: stopped at the last checkpoint; continue with: "
-              f"cmat train --resume {run_dir.path}", file=sys.stderr)
+        if resume or run_dir.metrics_path.exists():
+            print(f"cmat: stopped at the last checkpoint; continue with: "
+                  f"cmat train --resume {run_dir.path}", file=sys.stderr)
+        else:
+            shutil.rmtree(run_dir.path, ignore_errors=True)
+            print(f"cmat: stopped before the first update was saved; the new run directory "
+                  f"{run_dir.path} was removed", file=sys.stderr)
         raise
     print(f"run directory: {run_dir.path}")
 

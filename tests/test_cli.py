@@ -140,6 +140,33 @@ def test_an_interrupt_that_python_drops_still_stops_the_run_after_its_chunk(
     assert max(int(r["env_steps"]) for r in rows(run_copy)) == 2500
 
 
+def test_a_new_run_interrupted_before_its_first_chunk_leaves_no_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def interrupted(self: JaxTrainer, state: TrainerState, updates: int | None = None) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(JaxTrainer, "train_chunk", interrupted)
+    out = tmp_path / "new"
+    assert main(["train", "--env", "matrix:fig1", "--steps", "400", "--out", str(out)]) == 130
+    assert f"the new run directory {out} was removed" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_an_interrupted_process_ends_without_python_finalisation() -> None:
+    """`cmat.cli.run` leaves with os._exit(130) after an interrupt: finalising the interpreter
+    while XLA's threads still run crashed the process. atexit handlers mark finalisation."""
+    probe = ("import atexit\nimport cmat.cli\n"
+             "atexit.register(lambda: print('finalised'))\n"
+             "cmat.cli.main = lambda: int(__import__('sys').argv[1])\ncmat.cli.run()\n")
+    interrupted = subprocess.run([sys.executable, "-c", probe, "130"], capture_output=True,
+                                 text=True, timeout=60)
+    finished = subprocess.run([sys.executable, "-c", probe, "2"], capture_output=True,
+                              text=True, timeout=60)
+    assert (interrupted.returncode, interrupted.stdout) == (130, "")
+    assert (finished.returncode, finished.stdout) == (2, "finalised\n")
+
+
 def test_interrupted_then_resumed_run_continues_without_duplicates(
     run_copy: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
