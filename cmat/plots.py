@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -26,6 +27,28 @@ def new_figure(**options: Any) -> Figure:
     from matplotlib.figure import Figure
 
     return Figure(**options)
+
+
+def legend_below(figure: Figure, handles: list[Any], labels: list[str],
+                 fontsize: str = "small") -> None:
+    """One legend under the figure's panels, in as many columns as fit its width (measured
+    with the figure's renderer); labels too long for one column are wrapped, so that no entry
+    is cut off however long the labels are."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(figure).get_renderer()
+    room = 0.98 * figure.bbox.width
+    for columns in range(len(labels), 0, -1):
+        legend = figure.legend(handles, labels, loc="outside lower center", ncols=columns,
+                               fontsize=fontsize)
+        width = legend.get_window_extent(renderer).width
+        if width <= room:
+            return
+        legend.remove()
+    longest = max(len(label) for label in labels)
+    wrapped = ["\n".join(textwrap.wrap(label, max(8, int(longest * room / width) - 4)))
+               for label in labels]
+    figure.legend(handles, wrapped, loc="outside lower center", ncols=1, fontsize=fontsize)
 
 
 def marker(steps: np.ndarray) -> str | None:
@@ -79,10 +102,16 @@ def plot_runs(run_dirs: list[Path], out: Path) -> None:
     evaluations."""
     check_figure_path(out)
     panels: dict[str, list[tuple[str, Curve]]] = {"episode_return": [], "win_rate": []}
-    for path, name in zip(run_dirs, run_names(run_dirs)):
-        run = RunDir.open(path)
-        config, rows = run.config(), run.read_metrics()
-        label = f"{config.env} {config.algo} ({name})"
+    runs = [RunDir.open(path) for path in run_dirs]
+    configs = [run.config() for run in runs]
+    envs = {config.env for config in configs}
+    algos = {config.algo for config in configs}
+    for run, config, name in zip(runs, configs, run_names(run_dirs)):
+        rows = run.read_metrics()
+        label = " ".join([*([config.env] if len(envs) > 1 else []),
+                          *([config.algo] if len(algos) > 1 else []),
+                          *([f"finetune {config.finetune}"] if config.finetune else [])])
+        label = f"{label} ({name})" if label else name
         returns = eval_curve(rows, "episode_return")
         if returns is None:
             raise CmatError(f"no evaluation results in {run.path}")
@@ -91,16 +120,24 @@ def plot_runs(run_dirs: list[Path], out: Path) -> None:
         if win_rate is not None:
             panels["win_rate"].append((label, win_rate))
     shown = {name: curves for name, curves in panels.items() if curves}
-    figure = new_figure(figsize=(6 * len(shown), 4), layout="constrained")
+    figure = new_figure(figsize=(6 * len(shown), 4.2), layout="constrained")
     all_axes = figure.subplots(1, len(shown), squeeze=False)[0]
+    colors = {label: f"C{index % 10}" for index, (label, _) in enumerate(shown["episode_return"])}
+    handles: dict[str, Any] = {}
     for axes, (name, curves) in zip(all_axes, shown.items()):
         for label, (steps, mean, std) in curves:
-            (line,) = axes.plot(steps, mean, label=label, marker=marker(steps), markersize=3)
-            axes.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+            color = colors[label]
+            (line,) = axes.plot(steps, mean, color=color, marker=marker(steps), markersize=3)
+            axes.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2)
+            handles.setdefault(label, line)
         axes.set_xlabel("env steps per seed")
         axes.set_ylabel(f"eval {name.replace('_', ' ')}")
         axes.grid(alpha=0.3)
-        axes.legend(fontsize="small")
+    title = " · ".join(sorted(envs if len(envs) == 1 else set()) + sorted(
+        algos if len(algos) == 1 else set()))
+    if title:
+        figure.suptitle(title, fontsize="medium")
+    legend_below(figure, list(handles.values()), list(handles))
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(out, dpi=100)
 
@@ -171,7 +208,6 @@ def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
         raise CmatError("no training diagnostics in " + ", ".join(str(p) for p in run_dirs))
     if len(runs) > 1:
         handles = [figure.axes[0].plot([], [], color=colour)[0] for colour in colours]
-        figure.legend(handles, [label for label, _ in runs], loc="outside lower center",
-                      ncol=min(len(runs), 4), fontsize="small")
+        legend_below(figure, handles, [label for label, _ in runs])
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(out, dpi=100)

@@ -262,6 +262,23 @@ def test_plot_draws_a_win_rate_panel_only_where_a_run_defines_it(tmp_path: Path)
     assert one.shape[0] == two.shape[0] and two.shape[1] == 2 * one.shape[1]
 
 
+@pytest.mark.parametrize(("label_length", "rows"), [(6, 1), (40, 5), (90, 10)])
+def test_the_legend_under_a_figure_fits_its_width(label_length: int, rows: int) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    figure = plots.new_figure(figsize=(5.2, 4), layout="constrained")
+    axes = figure.subplots()
+    labels = [f"{index}{'x' * (label_length - 1)}" for index in range(5)]
+    handles = [axes.plot([0, 1], [0, index])[0] for index in range(5)]
+    plots.legend_below(figure, handles, labels)
+    (legend,) = figure.legends
+    renderer = FigureCanvasAgg(figure).get_renderer()
+    assert legend.get_window_extent(renderer).width <= figure.bbox.width
+    texts = [text.get_text() for text in legend.get_texts()]
+    assert [text.replace("\n", "") for text in texts] == labels
+    assert sum(text.count("\n") + 1 for text in texts) // legend._ncols == rows
+
+
 def test_runs_with_the_same_directory_name_get_labels_that_tell_them_apart(
     tmp_path: Path
 ) -> None:

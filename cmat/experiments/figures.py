@@ -20,7 +20,7 @@ from cmat.experiments.lines import (
 )
 from cmat.experiments.plan import Plan
 from cmat.experiments.spec import EnvEntry, ExperimentSpec
-from cmat.plots import marker, new_figure
+from cmat.plots import legend_below, marker, new_figure
 
 
 def draw(
@@ -89,8 +89,7 @@ def draw(
     for index in range(len(envs), rows * columns):
         axes_grid[index // columns][index % columns].set_visible(False)
     if figure_kind == "main" and handles:
-        figure.legend(list(handles.values()), list(handles), loc="outside lower center",
-                      ncols=min(6, len(handles)), fontsize="small")
+        legend_below(figure, list(handles.values()), list(handles))
     title = "training curves" if figure_kind == "main" else "ablation (CMAT)"
     figure.suptitle(f"{plan.spec.name}: {title}, greedy evaluation, mean ± std over seeds",
                     fontsize="small")
