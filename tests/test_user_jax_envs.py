@@ -6,6 +6,7 @@ envs that break the protocol in ordinary ways, each a one-line error before anyt
 from __future__ import annotations
 
 import csv
+import textwrap
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -492,6 +493,29 @@ def test_bad_ids_are_one_error_line(
 ) -> None:
     assert main(["train", "--env", env_id, "--steps", "100", "--out", str(tmp_path / "r")]) == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("agents", "choices"), [(3, 3), (2, 5)])
+def test_the_readme_example_env_honours_its_options(
+    agents: int, choices: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The README's smallest protocol env, copied from the README: its targets cover every
+    choice it is given, and its episodes last `max_episode_steps`."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = readme.split("The smallest one", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "readme_target.py").write_text(textwrap.dedent(block))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    env = make_env("jax:readme_target:make_env", agents=agents, choices=choices)
+    state, first = env.reset(jax.random.PRNGKey(0))
+
+    def step(state: Any, key: jax.Array) -> tuple[Any, tuple[jax.Array, jax.Array]]:
+        state, timestep = env.step(key, state, jnp.zeros(agents, jnp.int32))
+        return state, (jnp.argmax(timestep.obs[0]), timestep.done)
+
+    _, (targets, dones) = jax.lax.scan(step, state, jax.random.split(jax.random.PRNGKey(1), 200))
+    assert first.obs.shape == (agents, choices)
+    assert set(np.asarray(targets).tolist()) == set(range(choices))
+    assert np.flatnonzero(np.asarray(dones)).tolist() == list(range(4, 200, 5))
 
 
 def test_factory_options_come_from_env_kwargs() -> None:
