@@ -36,7 +36,7 @@ from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import resolve_config
 from cmat.rundir import RunDir
-from cmat.runners.loop import run_training
+from cmat.runners.loop import resume_is_complete, run_training
 
 if TYPE_CHECKING:
     from cmat.runners.base import Trainer, TrainerState
@@ -265,6 +265,8 @@ def train_command(args: argparse.Namespace) -> None:
             print(to_yaml(config, run_dir.resumed_sources(config)), end="")
             print(f"# {describe_env(config)}")
             return
+        if resume_is_complete(config, run_dir, run_dir.load_checkpoint()[1]):
+            return
         train_into(build_trainer(config), run_dir, resume=True)
         return
     flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds,
@@ -353,7 +355,9 @@ def eval_command(args: argparse.Namespace) -> None:
         if args.iterations is not None:
             trainer, state = with_eval_iterations(config, trainer, state, trained, args.iterations)
             extra["consensus_iterations"] = args.iterations
-    result = trainer.evaluate(state, args.episodes or config.eval_episodes, seed=config.seed)
+    episodes = args.episodes or config.eval_episodes
+    extra["episodes_per_seed"] = episodes
+    result = trainer.evaluate(state, episodes, seed=config.seed)
     per_seed = [
         {"seed": config.seed + index,
          "episode_return": json_number(result["episode_return"][index]),

@@ -99,6 +99,7 @@ def test_eval_prints_one_json_object_with_an_entry_per_seed(
     assert main(["eval", "--run", str(trained)]) == 0
     result = json.loads(capsys.readouterr().out)
     assert [entry["seed"] for entry in result["per_seed"]] == list(SEEDS)
+    assert result["episodes_per_seed"] == 4
     final = {int(r["seed"]): float(r["episode_return"])
              for r in rows(trained) if r["kind"] == "eval" and r["env_steps"] == "2000"}
     for entry in result["per_seed"]:
@@ -335,19 +336,21 @@ def test_usage_errors_are_one_error_line(
     assert message in one_error_line(capsys.readouterr().err)
 
 
-@pytest.mark.parametrize("argv", [
-    ["--help"],
-    ["train", "--help"],
-    ["train", "--algo", "nosuch"],
-    ["train", "--config", "{bad}"],
-    ["train", "--set", "ppo.epochs=abc"],
-    ["experiment", "{bad}"],
-    ["experiment", "{spec}", "--out", "{tmp}/grid"],
-    ["eval", "--run", "{tmp}/missing"],
-    ["finetune", "--from", "{tmp}/missing", "--mode", "consensus"],
-    ["plot", "{tmp}/missing", "--out", "{tmp}/plot.png"],
+@pytest.mark.parametrize(("argv", "code"), [
+    (["--help"], 0),
+    (["train", "--help"], 0),
+    (["train", "--algo", "nosuch"], 2),
+    (["train", "--config", "{bad}"], 2),
+    (["train", "--set", "ppo.epochs=abc"], 2),
+    (["experiment", "{bad}"], 2),
+    (["experiment", "{spec}", "--out", "{tmp}/grid"], 2),
+    (["eval", "--run", "{tmp}/missing"], 2),
+    (["finetune", "--from", "{tmp}/missing", "--mode", "consensus"], 2),
+    (["plot", "{tmp}/missing", "--out", "{tmp}/plot.png"], 2),
 ])
-def test_input_errors_and_help_come_before_jax_is_imported(argv: list[str], tmp_path: Path) -> None:
+def test_input_errors_and_help_come_before_jax_is_imported(
+    argv: list[str], code: int, tmp_path: Path
+) -> None:
     """Importing JAX and the networks takes seconds: the CLI's help and its reports of bad
     input (configs, specs, missing runs) must not wait for it."""
     bad = tmp_path / "bad.yaml"
@@ -361,8 +364,7 @@ def test_input_errors_and_help_come_before_jax_is_imported(argv: list[str], tmp_
              "print('jax imported' if 'jax' in sys.modules else 'no jax', code)\n")
     result = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True,
                             text=True, timeout=120)
-    assert result.stdout.splitlines()[-1] == f"no jax {0 if argv[-1] == '--help' else 2}", (
-        result.stderr)
+    assert result.stdout.splitlines()[-1] == f"no jax {code}", result.stderr
 
 
 def test_out_pointing_at_a_run_changes_nothing(
@@ -455,11 +457,16 @@ def test_a_config_edited_against_its_checkpoint_is_reported_and_changes_nothing(
 
 
 def test_a_run_in_training_elsewhere_or_complete_is_left_as_it_is(
-    run_copy: Path, capsys: pytest.CaptureFixture[str]
+    run_copy: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     before = snapshot(run_copy)
-    assert main(["train", "--resume", str(run_copy)]) == 0
-    assert "is complete at 2,000 env steps per seed" in capsys.readouterr().err
+    with monkeypatch.context() as patch:  # the budget is checked before anything compiles
+        patch.setattr("cmat.cli.build_trainer", lambda config: pytest.fail("trainer built"))
+        assert main(["train", "--resume", str(run_copy)]) == 0
+        assert "is complete at 2,000 env steps per seed" in capsys.readouterr().err
+        assert main(["train", "--resume", str(run_copy), "--steps", "1000"]) == 2
+        assert ("steps (1000) is below the 2000 env steps already done"
+                in one_error_line(capsys.readouterr().err))
     assert snapshot(run_copy) == before
     with lock_held_elsewhere(run_copy) as pid:
         held = snapshot(run_copy)

@@ -58,13 +58,7 @@ def train_locked(
         from cmat.runners.base import restore_run
 
         state, done = restore_run(run_dir, trainer)
-        if config.budget_steps < done:
-            raise CmatError(
-                f"steps ({config.total_steps}) is below the {done} env steps already done"
-            )
-        if config.budget_steps == done:
-            print(f"cmat: {run_dir.path} is complete at {done:,} env steps per seed; "
-                  f"--steps N above that extends it", file=sys.stderr)
+        if resume_is_complete(config, run_dir, done):
             return
         run_dir.write_config(config, run_dir.resumed_sources(config))
         run_dir.truncate_metrics(done)
@@ -93,6 +87,18 @@ def train_locked(
         run_dir.truncate_metrics(run_dir.load_checkpoint()[1])
         raise
     plot_runs([run_dir.path], run_dir.curve_path)
+
+
+def resume_is_complete(config: TrainConfig, run_dir: RunDir, done: int) -> bool:
+    """Whether a run resumed with `config` at `done` env steps per seed has nothing left to
+    train (then says so on stderr); CmatError where its budget is below what is done."""
+    if config.budget_steps < done:
+        raise CmatError(f"steps ({config.total_steps}) is below the {done} env steps already done")
+    if config.budget_steps == done:
+        print(f"cmat: {run_dir.path} is complete at {done:,} env steps per seed; "
+              f"--steps N above that extends it", file=sys.stderr)
+        return True
+    return False
 
 
 @contextmanager
