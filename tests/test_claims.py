@@ -95,6 +95,7 @@ def full_grid(**changes: list[float]) -> dict[str, dict[str, list[float]]]:
 def test_verdicts_follow_the_scores(spec: ExperimentSpec) -> None:
     claims = by_key(judge_claims(summary(full_grid()), spec))
     assert claims["CMAT"]["verdict"] == SUPPORTED
+    assert tuple(claims["CMAT"]["not_run"]) == ("PMAT", "Triple-BERT", "HAPPO")
     assert claims["CMAT paper"]["verdict"] == SUPPORTED
     assert claims["c"]["verdict"] == SUPPORTED
     assert claims["d"]["verdict"] == SUPPORTED
@@ -186,7 +187,7 @@ def test_claims_are_judged_from_the_scores_named_and_both_verdicts_are_shown(
     assert by_key(data["claims_from_finals"])["CMAT"]["verdict"] == TIED
     text = "\n".join(claims_section(data, "each seed's mean over the last 10%", 3))
     assert "from this grid's scores (each seed's mean over the last 10%)" in text
-    start = f"| (a) {CLAIMS['a']} (CMAT) |"
+    start = f"| (a) {CLAIMS['a']} (CMAT) (this grid runs no PMAT, Triple-BERT, HAPPO) |"
     row = next(line for line in text.splitlines() if line.startswith(start))
     assert row.endswith(f"| {TIED} |") and f"| {SUPPORTED} | CMAT vs MAT" in row
     data.pop("claims_from_finals")

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from cmat.experiments.spec import ExperimentSpec
+from cmat.experiments.spec import ALGO_LABELS, ExperimentSpec
 from cmat.experiments.statistics import bootstrap, improvement_probability, interval, iqm, normalise
 
 SEPARATION = 0.5
@@ -62,6 +62,9 @@ CLAIMS = {
     "d": "m = n is a robust default",
     "e": "CMAT avoids MAT's Pareto-suboptimal equilibrium on the Fig. 1 game",
 }
+
+PAPER_BASELINES = ("mat", "pmat", "triple_bert", "happo", "mappo")
+"""The baselines of claim (a); a grid without one of them says so in the claim's row."""
 
 EVIDENCE_NEEDED = {
     "a": "complete runs of a CMAT line and a baseline on the same benchmark (not `matrix:`) task",
@@ -114,6 +117,8 @@ class Claim:
     """Per-task comparisons the spec plans for the claim: for each line X is compared with
     (with scores yet or not), the spec's tasks that both lines' variants run on."""
     verdict: str = NO_DATA
+    not_run: tuple[str, ...] = ()
+    """The claim's lines that no variant of the spec runs (claim (a)'s absent baselines)."""
 
 
 def outcome(ci: list[float], xs: np.ndarray, ys: np.ndarray) -> str:
@@ -221,11 +226,13 @@ def judge_claims(
     def planned(x: str, ys: list[str], in_game: bool = False) -> int:
         return sum(covered({lines[x]["variant"], lines[y]["variant"]}, in_game) for y in ys)
 
+    in_spec = {algo for v in spec.variants if "main" in v.figures for algo in v.algos}
+    absent = tuple(ALGO_LABELS[algo] for algo in PAPER_BASELINES if algo not in in_spec)
     claims: list[Claim] = []
     for label in cmat_lines:
         claims.append(Claim("a", f"{CLAIMS['a']} ({label})", pairs(label, baselines, benchmark),
                             covered({lines[label]["variant"]}, False),
-                            planned(label, baselines)))
+                            planned(label, baselines), not_run=absent))
     for label in stages:
         others = [o for o in lines if o != label and main(o) and not stage(o)]
         claims.append(Claim("b", f"{CLAIMS['b']} ({label})", pairs(label, others, benchmark),

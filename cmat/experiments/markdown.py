@@ -12,10 +12,10 @@ from cmat.experiments.plan import Plan
 
 def markdown(plan: Plan, summary: dict[str, Any]) -> str:
     out = [f"# Experiment `{plan.spec.name}`", "",
-           (f"Spec: `spec.yaml` (from `{plan.spec.path}`). Score: {score_text(plan)}, mean ± "
-            f"std (population std, ddof = 0) over seeds (n = {plan.spec.seeds} unless "
-            f"marked). Metric: win rate where the environment defines one, else episode "
-            f"return."), ""]
+           (f"Spec: `spec.yaml` (from `{plan.spec.path}`). Seeds {seed_range(plan)} of every "
+            f"line. {settings_text(plan)} Score: {score_text(plan)}, mean ± std (population "
+            f"std, ddof = 0) over seeds (n = {plan.spec.seeds} unless marked). Metric: win "
+            f"rate where the environment defines one, else episode return."), ""]
     main = labels_of(summary, "main")
     if main:
         out += ["## Scores", "",
@@ -101,10 +101,17 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
     out += ["| run | found | this time | trained |", "|---|---|---|---|"]
     for run in summary["runs"]:
         found = run["status"] + (f": {run['note']}" if run["note"] else "")
-        trained = ", ".join(f"{seconds / 60:.0f} min on {where}"
+        trained = ", ".join(f"{duration(seconds)} on {where}"
                             for where, seconds in run.get("seconds", {}).items())
         out.append(f"| {run['run']} | {found} | {run['outcome'] or '—'} | {trained or '—'} |")
     return "\n".join(out) + "\n"
+
+
+def duration(seconds: float) -> str:
+    """'2.5 h', '14 min' or '40 s': hours from one hour up, minutes from one minute up."""
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.0f} min" if seconds >= 60 else f"{seconds:.0f} s"
 
 
 def compute_text(summary: dict[str, Any]) -> str:
@@ -116,10 +123,25 @@ def compute_text(summary: dict[str, Any]) -> str:
     distinct = sum(1 for run in summary["runs"] if run["seconds"])
     return ("Training wall time of the runs on disk (each run's sessions.jsonl; runs without "
             "that record are not counted): " + "; ".join(
-                f"{entry['hours']:.1f} h on {where} over {entry['runs']:.0f} runs"
+                f"{duration(entry['hours'] * 3600)} on {where} over {entry['runs']:.0f} runs"
                 for where, entry in compute.items())
             + (f" ({distinct} distinct runs: a run that trained in more than one place counts "
                f"in each)" if len(compute) > 1 else "") + ".")
+
+
+def seed_range(plan: Plan) -> str:
+    first, count = plan.spec.seed, plan.spec.seeds
+    return str(first) if count == 1 else f"{first}–{first + count - 1}"
+
+
+def settings_text(plan: Plan) -> str:
+    """The settings the spec gives every run (its top-level `set`); per-task and per-variant
+    settings are in spec.yaml."""
+    shared = ", ".join(f"`{override}`" for override in plan.spec.overrides)
+    return (f"Every run: {shared}; otherwise each algorithm's reference settings "
+            f"(per-task and per-variant settings in spec.yaml)." if shared else
+            "Every run at its algorithm's reference settings, except the per-task and "
+            "per-variant settings in spec.yaml.")
 
 
 def labels_of(summary: dict[str, Any], figure: str) -> list[str]:
@@ -186,7 +208,10 @@ def claims_section(summary: dict[str, Any], score: str, seeds: int) -> list[str]
             f", IQM {c['iqm_x']:.2f} vs {c['iqm_y']:.2f}, "
             f"{tally(c)} of {len(c['tasks'])} task(s)"
             for c in claim["comparisons"]) or f"none: needs {EVIDENCE_NEEDED[claim['key']]}"
-        row = (f"| ({claim['key']}) {claim['statement']} | "
+        not_run = claim.get("not_run", ())
+        statement = claim["statement"] + (f" (this grid runs no {', '.join(not_run)})"
+                                          if not_run else "")
+        row = (f"| ({claim['key']}) {statement} | "
                f"{claim['verdict']}{coverage(claim)} | {evidence} |")
         if from_finals:
             last = from_finals.get(claim["statement"])
