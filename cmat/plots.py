@@ -36,7 +36,7 @@ def legend_below(figure: Figure, handles: list[Any], labels: list[str],
     is cut off however long the labels are."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    renderer = FigureCanvasAgg(figure).get_renderer()
+    renderer = FigureCanvasAgg(figure).get_renderer()  # type: ignore[no-untyped-call]
     room = 0.98 * figure.bbox.width
     for columns in range(len(labels), 0, -1):
         legend = figure.legend(handles, labels, loc="outside lower center", ncols=columns,
