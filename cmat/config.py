@@ -41,6 +41,9 @@ class NetworkConfig:
     """Attention heads; must divide n_embd."""
     n_block: int = 1
     """Transformer blocks in the encoder and in the decoder."""
+    mlp_layers: int = 2
+    """MAPPO and HAPPO: hidden layers of the actor's and the critic's MLPs (on-policy's MLPBase:
+    2; HARL's tuned SMAC configs: `hidden_sizes` [64, 64, 64], 3)."""
     compressor_heads: int = 4
     """h, the number of soft mixtures each compressor forms (eq. critic_compressor); the paper
     does not give it."""
@@ -124,10 +127,14 @@ class PPOConfig:
     0.01 measured alike for CMAT on matrix:fig1 and SMAX 3m (benchmarks/target_tau.py)."""
     active_masks: bool = False
     """Leave inactive agents (`TimeStep.alive` False: dead, absent) out of the per-agent means
-    of the policy loss, entropy and per-agent value loss, and out of advantage normalisation,
-    as the reference MAT, MAPPO and HAPPO do (`use_policy_active_masks`,
-    `use_value_active_masks`). CMAT and Triple-BERT's joint ratio has no per-agent mean; with
-    this option their entropy is averaged over active agents only."""
+    of the policy loss and entropy, and out of advantage normalisation, as the reference MAT,
+    MAPPO and HAPPO do (`use_policy_active_masks`). CMAT and Triple-BERT's joint ratio has no
+    per-agent mean; with this option their entropy is averaged over active agents only."""
+    value_active_masks: bool | None = None
+    """Leave inactive agents out of the mean of a per-agent value loss (MAT's and PMAT's
+    V(ô_i)); None: as `active_masks`. The reference MAT's SMAC script turns it off:
+    `use_value_active_masks` is a store_false flag (default True) that
+    `mat/scripts/train_smac.sh` passes, so every agent's value is regressed, dead ones too."""
     per_agent_gae: bool = False
     """MAT and PMAT only: GAE per agent on each agent's own V(ô_i), each V(ô_i) regressed on
     its own return (the reference MAT with value normalisation, mat/runner/shared/
@@ -269,6 +276,7 @@ def validate(config: TrainConfig) -> TrainConfig:
         (net.n_embd > 0 and net.n_head > 0 and net.n_embd % net.n_head == 0,
          f"network.n_embd ({net.n_embd}) must be divisible by network.n_head ({net.n_head})"),
         (net.n_block > 0, f"network.n_block must be > 0, got {net.n_block}"),
+        (net.mlp_layers > 0, f"network.mlp_layers must be > 0, got {net.mlp_layers}"),
         (net.compressor_heads > 0,
          f"network.compressor_heads must be > 0, got {net.compressor_heads}"),
         (valid_iterations(net.consensus_iterations),

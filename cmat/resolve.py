@@ -1,8 +1,9 @@
 """The run config a user gets: the layers of `cmat.config` resolved, with each value's source.
 
 Layers, later ones winning: the dataclass defaults, the environment suite's settings
-(`cmat.envs.suites`), the algorithm's reference defaults, its preset, a YAML file, then
-`key=value` overrides from the command line. This module sits above the algorithms because two
+(`cmat.envs.suites`), the algorithm's reference defaults (and its reference's values for the
+task, where they differ), its preset, a YAML file, then `key=value` overrides from the command
+line. This module sits above the algorithms because two
 of the layers (and the checks that depend on the algorithm) come from the algorithm registry.
 """
 
@@ -16,7 +17,13 @@ import yaml
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from cmat.algorithms import algorithm_names, algorithm_presets, check_config, reference_defaults
+from cmat.algorithms import (
+    algorithm_names,
+    algorithm_presets,
+    check_config,
+    reference_defaults,
+    task_reference_defaults,
+)
 from cmat.config import (
     NESTED_FIELDS,
     ConfigSources,
@@ -49,7 +56,8 @@ def resolve_config(
     """A checked config and where each value came from. Layers, later ones winning: the
     dataclass defaults (or `base`, whose values keep `base_sources`), the environment suite's
     settings (cmat.envs.suites), the algorithm's reference defaults (its class's
-    `reference_defaults`), its preset, a YAML file, then `key=value` overrides.
+    `reference_defaults`, then its `task_reference_defaults` for the environment id), its
+    preset, a YAML file, then `key=value` overrides.
 
     Raises CmatError for an unreadable file, a malformed override, an unknown preset or field,
     and every check of `validate` and `check_config`."""
@@ -125,6 +133,9 @@ def named_layers(env: str, algo: str, preset: str | None) -> list[tuple[str, Any
         layers.append((f"suite {suite}", OmegaConf.create(SUITES[suite].settings)))
     if algo in algorithm_names():
         layers.append((f"algorithm {algo}", OmegaConf.create(reference_defaults(algo))))
+        task_values = task_reference_defaults(algo, env)
+        if task_values:
+            layers.append((f"algorithm {algo} on {env}", OmegaConf.create(task_values)))
         if preset is not None:
             presets = algorithm_presets(algo)
             if preset not in presets:

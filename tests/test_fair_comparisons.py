@@ -77,6 +77,83 @@ def test_each_algorithm_gets_its_reference_defaults(algo: str) -> None:
     assert overridden.ppo.target_tau == 0.5
 
 
+@pytest.mark.parametrize("algo", ["mat", "pmat"])
+def test_mat_regresses_dead_agents_values_as_its_smac_script(algo: str) -> None:
+    """`train_smac.sh` passes `--use_value_active_masks`, a store_false flag: MAT's policy loss
+    leaves dead agents out, its value loss does not."""
+    config = load_config(overrides=[f"algo={algo}", "env=smax:3m"])
+    assert config.ppo.active_masks and config.ppo.value_active_masks is False
+
+
+def test_a_run_that_masked_mats_value_loss_is_not_reused() -> None:
+    """A config written before `ppo.value_active_masks` existed (read as None: as active_masks)
+    is not the reference MAT's, so an experiment redoes its run."""
+    from cmat.experiments.plan import config_difference
+
+    expected = load_config(overrides=["algo=mat", "env=smax:3m"])
+    old = dataclasses.replace(
+        expected, ppo=dataclasses.replace(expected.ppo, value_active_masks=None)
+    )
+    assert config_difference(old, expected) == "ppo.value_active_masks: None, spec False"
+    assert config_difference(expected, expected) is None
+
+
+MAPPO_SCRIPTS = {
+    "smax:5m_vs_6m": (10, 0.05, 1, 0.01),
+    "smax:10m_vs_11m": (10, 0.2, 1, 0.01),
+    "smax:MMM2": (5, 0.2, 2, 1.0),
+    "smax:3s5z_vs_3s6z": (5, 0.2, 1, 0.01),
+    "smax:2s3z": (5, 0.2, 1, 0.01),
+}
+"""env -> (ppo_epoch, clip_param, num_mini_batch, gain) of on-policy's
+train_smac_scripts/train_smac_MAP.sh (2s3z has none: the shared values)."""
+
+
+@pytest.mark.parametrize("env", sorted(MAPPO_SCRIPTS))
+def test_mappo_takes_its_per_map_smac_script_values(env: str) -> None:
+    config = load_config(overrides=["algo=mappo", f"env={env}"])
+    got = (config.ppo.epochs, config.ppo.clip_eps, config.ppo.num_minibatches,
+           config.network.init_gain)
+    assert got == MAPPO_SCRIPTS[env]
+    mine = load_config(overrides=["algo=mappo", f"env={env}", "ppo.epochs=3"])
+    assert mine.ppo.epochs == 3
+
+
+def test_happo_takes_harls_tuned_config_of_the_map() -> None:
+    tuned = load_config(overrides=["algo=happo", "env=smax:3s5z_vs_3s6z"])
+    assert (tuned.network.n_embd, tuned.network.mlp_layers, tuned.ppo.clip_eps,
+            tuned.ppo.gamma, tuned.ppo.epochs, tuned.ppo.num_minibatches) == (
+        64, 3, 0.1, 0.95, 5, 2)
+    untuned = load_config(overrides=["algo=happo", "env=smax:2s3z"])
+    assert (untuned.network.n_embd, untuned.network.mlp_layers, untuned.ppo.clip_eps,
+            untuned.ppo.gamma) == (128, 2, 0.2, 0.99)
+    other = load_config(overrides=["algo=mappo", "env=smax:3s5z_vs_3s6z"])
+    assert (other.network.mlp_layers, other.ppo.gamma) == (2, 0.99)
+
+
+def test_happo_builds_the_mlp_depth_it_is_given() -> None:
+    config = load_config(overrides=["algo=happo", "env=smax:3s5z_vs_3s6z"])
+    algorithm = build_algorithm("happo", config.network, spec(), config.ppo)
+    params = algorithm.init(jax.random.PRNGKey(0), jnp.zeros((3, 6)), jnp.ones((3, 4), bool))
+    hidden = [path for path in kernels(params["critic"]) if "MLPTrunk_0" in path]
+    assert len(hidden) == 3
+
+
+def test_mappo_appends_no_second_agent_id() -> None:
+    """Where the environment's observations already end with the id (`env_kwargs.agent_id`),
+    the shared actor reads them as they are."""
+    config = load_config(overrides=["algo=mappo"])
+    plain = build_algorithm("mappo", config.network, spec(), config.ppo)
+    with_id = build_algorithm(
+        "mappo", config.network, dataclasses.replace(spec(), agent_id=True), config.ppo
+    )
+    obs = jnp.zeros((3, 6))
+    assert plain.actor_inputs(obs).shape == (3, 9)
+    assert with_id.actor_inputs(obs).shape == (3, 6)
+    assert make_env("smax:3m", agent_id=True).spec.agent_id
+    assert not make_env("smax:3m").spec.agent_id
+
+
 @pytest.mark.parametrize("algo, tau", [("cmat", ["ppo.target_tau=0.1"]), ("mat", [])])
 def test_target_critic_follows_tau(algo: str, tau: list[str]) -> None:
     """φ⁻ ← τφ + (1−τ)φ⁻ after an update, from a target moved away from the critic first:
@@ -230,8 +307,12 @@ def perturb_dead_agent(batch: Batch, per_agent: bool) -> Batch:
 
 @pytest.mark.parametrize("algo", ["mat", "pmat", "mappo"])
 def test_active_masks_remove_a_dead_agent_from_every_mean(algo: str) -> None:
+    """Policy loss and entropy leave a dead agent out; so does the value loss with
+    `ppo.value_active_masks` (MAT's per-agent values; the reference SMAC script regresses dead
+    agents' values too, tested below; MAPPO's team value has no agent to leave out)."""
     ppo = load_config(overrides=[f"algo={algo}"]).ppo
     assert ppo.active_masks
+    ppo = dataclasses.replace(ppo, value_active_masks=True)
     network = load_config(overrides=[f"algo={algo}"]).network
     algorithm = build_algorithm(algo, network, spec(), ppo)
     params, batch = dead_agent_batch(algorithm, 3, ppo.per_agent_gae)
@@ -241,6 +322,12 @@ def test_active_masks_remove_a_dead_agent_from_every_mean(algo: str) -> None:
     assert float(changed) == pytest.approx(float(base), rel=1e-5, abs=1e-6)
     for name in ("policy_loss", "entropy", "value_loss"):
         assert float(changed_metrics[name]) == pytest.approx(float(metrics[name]), abs=1e-6)
+    if ppo.per_agent_gae:
+        reference = dataclasses.replace(ppo, value_active_masks=False)
+        _, kept = loss(params, batch, reference)
+        _, kept_changed = loss(params, perturb_dead_agent(batch, True), reference)
+        assert float(kept_changed["policy_loss"]) == pytest.approx(float(kept["policy_loss"]))
+        assert abs(float(kept_changed["value_loss"]) - float(kept["value_loss"])) > 1e-3
     unmasked = dataclasses.replace(ppo, active_masks=False)
     off, _ = loss(params, batch, unmasked)
     off_changed, _ = loss(params, perturb_dead_agent(batch, ppo.per_agent_gae), unmasked)

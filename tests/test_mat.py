@@ -241,12 +241,14 @@ def test_mat_never_samples_or_picks_masked_actions(mat_team: Team) -> None:
     assert len(np.unique(actions)) == ACTIONS
 
 
+@pytest.mark.parametrize("value_active_masks", [False, True])
 @pytest.mark.parametrize("team_name", ["mat_team", "pmat_team"])
 def test_every_agent_value_regresses_on_the_team_target_with_its_own_clip(
-    team_name: str, request: pytest.FixtureRequest
+    team_name: str, value_active_masks: bool, request: pytest.FixtureRequest
 ) -> None:
     """The reference MAT value loss: mean over samples and agents of
-    max((R − V_i)², (R − clip(V_i, V_i,old ± ε))²)/2, with V_i,old stored at acting time."""
+    max((R − V_i)², (R − clip(V_i, V_i,old ± ε))²)/2, with V_i,old stored at acting time; dead
+    agents count in that mean unless `ppo.value_active_masks` (the reference SMAC script's)."""
     team: Team = request.getfixturevalue(team_name)
     is_mat = isinstance(team.algorithm, MAT)
     mat: MAT = team.algorithm if is_mat else team.algorithm.mat
@@ -255,17 +257,20 @@ def test_every_agent_value_regresses_on_the_team_target_with_its_own_clip(
     np.testing.assert_allclose(old_values.mean(axis=1), team.batch.values, rtol=1e-6, atol=1e-6)
 
     targets = np.asarray(team.batch.targets) + np.linspace(-1.0, 1.0, TEAMS)
-    shifted = team.batch._replace(targets=jnp.asarray(targets))
+    alive = np.ones(team.batch.log_probs.shape, bool)
+    alive[::2, 0] = False
+    shifted = team.batch._replace(targets=jnp.asarray(targets), alive=jnp.asarray(alive))
     moved = jax.tree.map(lambda x: x * 1.5, params)
-    ppo = PPOConfig(huber_loss=False, clipped_value_loss=True, clip_eps=0.05)
+    ppo = PPOConfig(huber_loss=False, clipped_value_loss=True, clip_eps=0.05, active_masks=True,
+                    value_active_masks=value_active_masks)
     orders = jnp.broadcast_to(mat.identity, team.batch.log_probs.shape)
     _, metrics, output = jitted(mat.loss_along, static_argnums=(4,))(
         moved, shifted, orders, jnp.asarray(old_values), ppo
     )
     values = np.asarray(output.agent_values, np.float64)
     clipped = old_values + np.clip(values - old_values, -0.05, 0.05)
-    expected = np.mean(np.maximum(
-        (targets[:, None] - values) ** 2, (targets[:, None] - clipped) ** 2
-    )) / 2
+    losses = np.maximum((targets[:, None] - values) ** 2, (targets[:, None] - clipped) ** 2) / 2
+    expected = losses[alive].mean() if value_active_masks else losses.mean()
+    assert not np.isclose(losses[alive].mean(), losses.mean(), rtol=1e-3)
     assert np.abs(values - old_values).max() > 0.05
     np.testing.assert_allclose(metrics["value_loss"], expected, rtol=1e-4)

@@ -1,9 +1,10 @@
 """The algorithm registry: the one place algorithms are listed.
 
 Each class in `ALGORITHM_CLASSES` declares what the rest of cmat needs to know about it (see
-`cmat.algorithms.base.Algorithm`): its `name`, its `reference_defaults` and `presets` (config
-layers), the fine-tuning stages it supports and its `capabilities` (which algorithm-specific
-options it accepts). Config checks that depend on the algorithm (`check_config`) read them.
+`cmat.algorithms.base.Algorithm`): its `name`, its `reference_defaults`,
+`task_reference_defaults` and `presets` (config layers), the fine-tuning stages it supports and
+its `capabilities` (which algorithm-specific options it accepts). Config checks that depend on
+the algorithm (`check_config`) read them.
 """
 
 from __future__ import annotations
@@ -68,6 +69,13 @@ def algorithm_class(name: str) -> type[Algorithm]:
 def reference_defaults(name: str) -> dict[str, Any]:
     """The named algorithm's reference settings (its class's `reference_defaults`)."""
     defaults: dict[str, Any] = algorithm_class(name).reference_defaults
+    return defaults
+
+
+def task_reference_defaults(name: str, env_id: str) -> dict[str, Any]:
+    """The named algorithm's reference settings for one task (its class's
+    `task_reference_defaults`; empty where its reference has no per-task values)."""
+    defaults: dict[str, Any] = algorithm_class(name).task_reference_defaults.get(env_id, {})
     return defaults
 
 

@@ -60,6 +60,13 @@ def active_mask(batch: Batch, ppo: PPOConfig) -> jax.Array | None:
     return batch.alive if ppo.active_masks and batch.alive is not None else None
 
 
+def value_active_mask(batch: Batch, ppo: PPOConfig) -> jax.Array | None:
+    """The [B, n] mask a per-agent value loss's mean runs over: the batch's `alive` with
+    `ppo.value_active_masks` (None there: `ppo.active_masks`), else None (every agent)."""
+    masked = ppo.active_masks if ppo.value_active_masks is None else ppo.value_active_masks
+    return batch.alive if masked and batch.alive is not None else None
+
+
 class ActResult(NamedTuple):
     actions: jax.Array
     log_probs: jax.Array
@@ -95,6 +102,11 @@ class Algorithm(Protocol):
     """Config values of the algorithm's reference implementation where they differ from the
     dataclass defaults (the reference MAT's SMAC settings); `cmat.resolve.resolve_config` puts them
     between those defaults and a YAML file."""
+
+    task_reference_defaults: ClassVar[dict[str, dict[str, Any]]]
+    """Config values the reference runs one task with (an environment id such as
+    'smax:5m_vs_6m' -> values), where its per-task scripts differ from `reference_defaults`;
+    `cmat.resolve.resolve_config` puts them right after those."""
 
     presets: ClassVar[dict[str, dict[str, Any]]]
     """Named sets of config values (`TrainConfig.preset`); 'paper' is the paper's setting."""

@@ -1,7 +1,8 @@
 """MAPPO (Yu et al. 2022): one actor shared by all agents, a centralized critic, per-agent PPO.
 
 Agent i acts from [o_i; one-hot(i)] alone (decentralised execution; the id lets the shared actor
-tell agents apart). The critic V(s) reads the environment's global state (`TimeStep.
+tell agents apart; where the environment's observations already end with it, `EnvSpec.agent_id`,
+o_i is used as it is). The critic V(s) reads the environment's global state (`TimeStep.
 global_state`; on SMAX the world state JaxMARL's own MAPPO critic uses), or all agents'
 observations concatenated where the environment has none. Each agent's ratio r_i = π_i / π_i,old
 is clipped on its own against the team advantage and the surrogate is averaged over agents
@@ -42,10 +43,14 @@ class MAPPO(PPOAlgorithm):
     discrete: bool
     state_dim: int = 0
     """The environment's global state size; 0: the critic reads the concatenated observations."""
+    obs_has_agent_id: bool = False
+    """The observations already end with the agent's one-hot id (`EnvSpec.agent_id`)."""
 
     name: ClassVar[str] = "mappo"
-    network_fields: ClassVar[tuple[str, ...]] = ("n_embd", "init_gain", "log_std_init")
-    """`n_embd` is the hidden width of the actor's and the critic's MLPs."""
+    network_fields: ClassVar[tuple[str, ...]] = (
+        "n_embd", "mlp_layers", "init_gain", "log_std_init")
+    """`n_embd` is the hidden width of the actor's and the critic's MLPs, `mlp_layers` their
+    depth, `init_gain` the actor output layer's gain (on-policy's `--gain`)."""
 
     presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
     """'paper': the paper's comparison setting, the reference settings with 8 rollout
@@ -57,14 +62,36 @@ class MAPPO(PPOAlgorithm):
     """Yu et al. 2022 (marlbenchmark/on-policy, SMAC scripts): clip 0.2, 5 epochs, GAE and
     targets from the collecting critic, active masks."""
 
+    task_reference_defaults: ClassVar[dict[str, dict[str, Any]]] = {
+        "smax:3m": {"ppo": {"epochs": 15}},
+        "smax:8m": {"ppo": {"epochs": 15}},
+        "smax:25m": {"ppo": {"epochs": 10}},
+        "smax:5m_vs_6m": {"ppo": {"epochs": 10, "clip_eps": 0.05}},
+        "smax:10m_vs_11m": {"ppo": {"epochs": 10}},
+        "smax:3s_vs_5z": {"ppo": {"epochs": 15, "clip_eps": 0.05}},
+        "smax:MMM2": {"ppo": {"num_minibatches": 2}, "network": {"init_gain": 1.0}},
+    }
+    """on-policy's per-map SMAC scripts (`onpolicy/scripts/train_smac_scripts/train_smac_MAP.sh`
+    at de66d7a) where they differ from clip 0.2, 5 epochs, 1 minibatch, gain 0.01; 3s5z,
+    3s5z_vs_3s6z, 6h_vs_8z and 27m_vs_30m run those, and maps without a script (2s3z, SMACv2)
+    too. 3s_vs_5z's stacked frames are not modelled."""
+
     @classmethod
     def build(
         cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
     ) -> MAPPO:
         actor = MLPActor(
-            config.n_embd, spec.action_dim, spec.discrete, config.init_gain, config.log_std_init
+            config.n_embd, spec.action_dim, spec.discrete, config.init_gain, config.log_std_init,
+            config.mlp_layers,
         )
-        return cls(actor, MLPCritic(config.n_embd), spec.num_agents, spec.discrete, spec.state_dim)
+        return cls(
+            actor,
+            MLPCritic(config.n_embd, config.mlp_layers),
+            spec.num_agents,
+            spec.discrete,
+            spec.state_dim,
+            spec.agent_id,
+        )
 
     def critic_input(self, obs: jax.Array, global_state: jax.Array | None) -> jax.Array:
         """The critic's input [..., s]: the global state, or obs [..., n, obs_dim] flattened
@@ -81,7 +108,10 @@ class MAPPO(PPOAlgorithm):
         return global_state
 
     def actor_inputs(self, obs: jax.Array) -> jax.Array:
-        """[o_i; one-hot(i)] for every agent: [..., n, obs_dim + n]."""
+        """[o_i; one-hot(i)] for every agent: [..., n, obs_dim + n]; obs as it is where it already
+        ends with the id."""
+        if self.obs_has_agent_id:
+            return obs
         ids = jnp.eye(self.num_agents, dtype=obs.dtype)
         return jnp.concatenate([obs, jnp.broadcast_to(ids, (*obs.shape[:-1], ids.shape[1]))], -1)
 

@@ -2,9 +2,10 @@
 
 Each agent's ratio r_i = π_i(a_i | O, a_<i) / π_i,old(a_i | O, a_<i) is clipped on its own with
 its advantage, and the clipped objectives are averaged over agents and samples; with
-`ppo.active_masks` (the reference default) over the active agents only, as are the entropy and
-the value loss (mat/algorithms/mat/mat_trainer.py, `use_policy_active_masks`,
-`use_value_active_masks`).
+`ppo.active_masks` (the reference default) over the active agents only, as is the entropy
+(mat/algorithms/mat/mat_trainer.py, `use_policy_active_masks`); the value loss averages over
+every agent, dead ones too, as the reference SMAC script runs it (`ppo.value_active_masks`
+false: `train_smac.sh` passes the store_false flag `--use_value_active_masks`).
 
 Values, as the reference with value normalisation (`ppo.per_agent_gae`, the default): GAE runs
 per agent on each agent's own V(ô_i) with the shared team reward, and each V(ô_i) is regressed
@@ -21,7 +22,7 @@ from typing import Any, ClassVar, cast
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked
+from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked, value_active_mask
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     masked_mean,
@@ -56,11 +57,13 @@ class MAT(PPOAlgorithm):
     threads."""
 
     reference_defaults: ClassVar[dict[str, Any]] = {
-        "ppo": {"target_tau": 1.0, "active_masks": True, "per_agent_gae": True},
+        "ppo": {"target_tau": 1.0, "active_masks": True, "value_active_masks": False,
+                "per_agent_gae": True},
     }
     """The reference MAT (PKU-MARL/Multi-Agent-Transformer, SMAC scripts): GAE and targets from
-    the collecting critic, active masks, per-agent GAE with value normalisation; the other
-    hyper-parameters are the dataclass defaults."""
+    the collecting critic, active masks in the policy loss and entropy but not in the value
+    loss, per-agent GAE with value normalisation; the other hyper-parameters are the dataclass
+    defaults."""
 
     @classmethod
     def build(
@@ -155,7 +158,8 @@ class MAT(PPOAlgorithm):
     ) -> tuple[jax.Array, dict[str, jax.Array], MATOutput]:
         """Eq. mat with the actions decoded along orders [B, n], and every agent's value
         regressed on its target (per agent, or the team's) around its collecting-time value
-        [B, n]; means over active agents with `ppo.active_masks`. Also returns the outputs."""
+        [B, n]; policy and entropy means over active agents with `ppo.active_masks`, the value
+        loss's with `ppo.value_active_masks`. Also returns the outputs."""
         output = self.teacher_forced(params, batch, orders, ppo.minibatch_chunks)
         total, metrics = self.objective(output, batch, old_agent_values, ppo)
         return total, metrics, output
@@ -179,7 +183,7 @@ class MAT(PPOAlgorithm):
         entropy = masked_mean(entropies, mask)
         critic_loss = value_loss(
             output.agent_values, old_agent_values, per_agent(batch.targets, log_ratio.shape),
-            ppo, mask,
+            ppo, value_active_mask(batch, ppo),
         )
         total, terms = total_loss(policy_loss, entropy, critic_loss, ppo)
         metrics = {

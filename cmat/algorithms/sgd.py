@@ -130,6 +130,7 @@ class PPOAlgorithm:
     finetune_stages: ClassVar[tuple[str, ...]] = ()
     capabilities: ClassVar[frozenset[str]] = frozenset()
     reference_defaults: ClassVar[dict[str, Any]] = {}
+    task_reference_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
     ynnpack_matmuls: ClassVar[bool] = False
 

@@ -32,7 +32,9 @@ class AgentIdWrapper:
 
     def __init__(self, env: MarlEnv) -> None:
         self.env = env
-        self.spec = dataclasses.replace(env.spec, obs_dim=env.spec.obs_dim + env.spec.num_agents)
+        self.spec = dataclasses.replace(
+            env.spec, obs_dim=env.spec.obs_dim + env.spec.num_agents, agent_id=True
+        )
 
     def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
         """Start an episode."""

@@ -31,6 +31,9 @@ class EnvSpec:
     state_dim: int = 0
     """Size of the environment's global state (`TimeStep.global_state`); 0 where it has none,
     and centralised critics that want one then read all agents' observations concatenated."""
+    agent_id: bool = False
+    """Each observation ends with its agent's one-hot id [n] (`AgentIdWrapper`,
+    `env_kwargs.agent_id`), so a network shared by the agents need not append one."""
 
 
 class TimeStep(NamedTuple):

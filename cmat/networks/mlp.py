@@ -1,8 +1,8 @@
 """Feed-forward actor and centralized critic of the MAPPO and HAPPO baselines.
 
-Both follow the reference MLP base (Yu et al. 2022; HARL): LayerNorm on the input, then two
-hidden layers of `hidden` units, each dense → ReLU → LayerNorm, orthogonal init with the ReLU
-gain. Arrays carry any number of leading batch axes.
+Both follow the reference MLP base (Yu et al. 2022; HARL): LayerNorm on the input, then `layers`
+hidden layers of `hidden` units (two in on-policy's MLPBase), each dense → ReLU → LayerNorm,
+orthogonal init with the ReLU gain. Arrays carry any number of leading batch axes.
 """
 
 from __future__ import annotations
@@ -36,10 +36,12 @@ class MLPActor(nn.Module):
     log_std_init: float = 1.0
     """Initial log-std of continuous actions (std = sigmoid(log_std) · 0.5, as every cmat
     policy; the reference MAPPO's DiagGaussian uses std = exp(log_std), README)."""
+    layers: int = 2
 
     @nn.compact
     def __call__(self, x: jax.Array, action_mask: jax.Array) -> tuple[jax.Array, jax.Array]:
-        action_params = dense(self.action_dim, self.init_gain)(MLPTrunk(self.hidden)(x))
+        hidden = MLPTrunk(self.hidden, self.layers)(x)
+        action_params = dense(self.action_dim, self.init_gain)(hidden)
         log_std = self.param(
             "log_std", nn.initializers.constant(self.log_std_init),
             (0 if self.discrete else self.action_dim,),
@@ -52,8 +54,9 @@ class MLPCritic(nn.Module):
     gain 1)."""
 
     hidden: int
+    layers: int = 2
 
     @nn.compact
     def __call__(self, state: jax.Array) -> jax.Array:
         """state [..., s] -> [...]"""
-        return dense(1, 1.0)(MLPTrunk(self.hidden)(state))[..., 0]
+        return dense(1, 1.0)(MLPTrunk(self.hidden, self.layers)(state))[..., 0]

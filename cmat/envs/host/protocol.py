@@ -197,7 +197,9 @@ class HostAgentIdWrapper:
 
     def __init__(self, env: HostEnv) -> None:
         self.env = env
-        self.spec = dataclasses.replace(env.spec, obs_dim=env.spec.obs_dim + env.spec.num_agents)
+        self.spec = dataclasses.replace(
+            env.spec, obs_dim=env.spec.obs_dim + env.spec.num_agents, agent_id=True
+        )
         self._ids = np.eye(env.spec.num_agents, dtype=np.float32)
 
     @property
