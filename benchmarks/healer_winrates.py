@@ -16,11 +16,11 @@ import time
 import jax
 
 from cmat.envs.jaxmarl_envs import SmaxEnv
+from cmat.envs.random_policy import random_legal_actions
 from cmat.envs.smax_healer import (
     SCENARIOS,
     first_episode_wins,
     focus_fire_policy,
-    random_legal_actions,
 )
 
 

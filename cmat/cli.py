@@ -32,6 +32,7 @@ from cmat.config import (
     validate,
 )
 from cmat.envs import probe_env
+from cmat.envs.suites import SUITES
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import resolve_config
@@ -248,6 +249,9 @@ def config_command(args: argparse.Namespace) -> None:
         if docs.get(name):
             print(textwrap.fill(docs[name], width=96, initial_indent="    ",
                                 subsequent_indent="    "))
+    suite = config.env.partition(":")[0]
+    if suite in SUITES:
+        print(f"# suite {suite}: {SUITES[suite].source}")
     if unavailable is not None:
         print(f"# {config.env} cannot be built on this machine: {unavailable}")
 
@@ -353,7 +357,7 @@ def eval_command(args: argparse.Namespace) -> None:
                                      trainer.env_spec.num_agents)
         extra["consensus_iterations"] = trained
         if args.iterations is not None:
-            trainer, state = with_eval_iterations(config, trainer, state, trained, args.iterations)
+            trainer, state = with_eval_iterations(config, state, trained, args.iterations)
             extra["consensus_iterations"] = args.iterations
     episodes = args.episodes or config.eval_episodes
     extra["episodes_per_seed"] = episodes
@@ -368,7 +372,7 @@ def eval_command(args: argparse.Namespace) -> None:
 
 
 def with_eval_iterations(
-    config: TrainConfig, trainer: Trainer, state: TrainerState, trained: int, iterations: int
+    config: TrainConfig, state: TrainerState, trained: int, iterations: int
 ) -> tuple[Trainer, TrainerState]:
     """A trainer whose network runs `iterations` consensus iterations, and `state` with the
     decoder's positional table cut to them. Positions past the trained m were never learned, so

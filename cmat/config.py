@@ -28,6 +28,10 @@ FINETUNE_MODES = ("consensus", "action")
 JOINT_CLIPS = ("joint", "per_agent")
 ENTROPY_REDUCTIONS = ("mean", "sum")
 LOGGERS = ("tensorboard", "wandb")
+NONFINITE_POLICIES = ("error", "warn")
+"""What a host environment does with a NaN or infinite observation, reward or state
+(`TrainConfig.host_nonfinite`): stop the run with a one-line error, or replace the values by 0
+and count them (`metrics.csv` column `env_nonfinite`)."""
 
 @dataclass(frozen=True)
 class NetworkConfig:
@@ -269,7 +273,7 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"host_crash_limit must be >= 1, got {config.host_crash_limit}"),
         (config.logger in LOGGERS,
          f"logger must be one of {', '.join(LOGGERS)}, got {config.logger!r}"),
-        (config.host_nonfinite in ("error", "warn"),
+        (config.host_nonfinite in NONFINITE_POLICIES,
          f"host_nonfinite must be error or warn, got {config.host_nonfinite!r}"),
         (config.log_interval is None or config.log_interval > 0,
          f"log_interval must be > 0, got {config.log_interval}"),

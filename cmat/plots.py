@@ -68,7 +68,7 @@ def check_figure_path(out: Path) -> None:
         raise CmatError(f"cannot write a figure to {out}: it is a directory")
 
 
-def eval_curve(rows: list[dict[str, str]], column: str, kind: str = "eval") -> Curve | None:
+def metric_curve(rows: list[dict[str, str]], column: str, kind: str = "eval") -> Curve | None:
     """(env_steps, mean, std) over seeds of a column of the `kind` rows (eval or train); None
     where it is never defined."""
     by_step: dict[int, list[float]] = {}
@@ -112,11 +112,11 @@ def plot_runs(run_dirs: list[Path], out: Path) -> None:
                           *([config.algo] if len(algos) > 1 else []),
                           *([f"finetune {config.finetune}"] if config.finetune else [])])
         label = f"{label} ({name})" if label else name
-        returns = eval_curve(rows, "episode_return")
+        returns = metric_curve(rows, "episode_return")
         if returns is None:
             raise CmatError(f"no evaluation results in {run.path}")
         panels["episode_return"].append((label, returns))
-        win_rate = eval_curve(rows, "win_rate")
+        win_rate = metric_curve(rows, "win_rate")
         if win_rate is not None:
             panels["win_rate"].append((label, win_rate))
     shown = {name: curves for name, curves in panels.items() if curves}
@@ -182,7 +182,7 @@ def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
         styled = len(names) <= len(LINE_STYLES)
         for (_label, rows), columns, colour in zip(runs, found, colours):
             for column in columns:
-                curve = eval_curve(rows, column, kind="train")
+                curve = metric_curve(rows, column, kind="train")
                 if curve is None:
                     continue
                 steps, mean, std = curve

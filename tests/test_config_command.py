@@ -31,8 +31,13 @@ def test_config_shows_the_algorithms_reference_values_with_their_source(
     assert "num_envs = 32  [suite smax]" in out
     assert "ppo.lr = 0.0001  [command line]" in out
     assert "ppo.lr = 0.0001  [command line]\n    Adam learning rate" in out
-    fields = [line.split(" = ")[0] for line in out.splitlines() if not line.startswith(" ")]
+    fields = [line.split(" = ")[0] for line in out.splitlines() if not line.startswith((" ", "#"))]
     assert fields == field_names()
+    assert "# suite smax: MAT's SMAC scripts" in out
+    assert main(["config", "--algo", "mappo", "--env", "smax:5m_vs_6m"]) == 0
+    out = capsys.readouterr().out
+    assert "ppo.clip_eps = 0.05  [algorithm mappo on smax:5m_vs_6m]" in out
+    assert "ppo.epochs = 10  [algorithm mappo on smax:5m_vs_6m]" in out
 
 
 def test_config_with_an_unknown_algorithm_is_one_error(
@@ -50,7 +55,7 @@ CHANGED_NETWORK_FIELDS = {
     "n_embd": 32, "n_head": 2, "n_block": 2, "compressor_heads": 2, "consensus_iterations": 1,
     "consensus_source": "last", "consensus_policy": "categorical", "consensus_codes": 4,
     "latent_head_gain": 0.5, "init_gain": 0.5, "log_std_init": 0.0, "recurrent": True,
-    "retention_decay": 0.5, "retention_chunk": 1,
+    "retention_decay": 0.5, "retention_chunk": 1, "mlp_layers": 3,
 }
 
 
@@ -87,4 +92,7 @@ def test_config_marks_the_network_fields_an_algorithm_does_not_read(
     assert "network.n_embd = 64  [default]\n" in out
     assert "network.n_head = 1  [default; not read by mappo]" in out
     assert main(["config", "--algo", "cmat"]) == 0
-    assert "not read" not in capsys.readouterr().out
+    unread = [line.split(" = ")[0] for line in capsys.readouterr().out.splitlines()
+              if "not read by cmat" in line]
+    assert unread == ["network.mlp_layers", "network.recurrent", "network.retention_decay",
+                      "network.retention_chunk"]

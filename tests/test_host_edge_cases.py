@@ -381,6 +381,12 @@ def test_nonfinite_values_are_replaced_and_counted_when_asked() -> None:
     assert pool.counters()["env_nonfinite"].tolist() == [1, 1]
 
 
+@pytest.mark.parametrize("policy", ["warm", "", "ERROR"])
+def test_an_unknown_nonfinite_policy_is_refused(policy: str) -> None:
+    with pytest.raises(CmatError, match=f"nonfinite must be one of error, warn, got {policy!r}"):
+        make_host_env(FAULTY, nonfinite=policy)
+
+
 @pytest.mark.parametrize("fault", [{"fault": "obs_shape", "at": 0}, {"fault": "nan_obs", "at": 0},
                                    {"fault": "dead_mask", "at": 0}])
 def test_a_run_whose_env_fails_at_reset_leaves_no_run_directory(

@@ -18,12 +18,12 @@ import pytest
 
 from cmat.envs import make_env
 from cmat.envs.jaxmarl_envs import SmaxEnv
+from cmat.envs.random_policy import random_legal_actions
 from cmat.envs.smax_healer import (
     MEDIVAC,
     STOP,
     first_episode_wins,
     focus_fire_policy,
-    random_legal_actions,
 )
 
 pytestmark = pytest.mark.quick_compiles

@@ -38,12 +38,12 @@ class Batch(NamedTuple):
     """[B] or [B, n] value targets (normalised space), shaped as `values`"""
     extras: Any = ()
     """[B, ...] whatever the algorithm's `act` stored with each step (e.g. a sampled agent order)"""
-    alive: Any = None
+    alive: jax.Array | None = None
     """[B, n] bool: agents active in the observation (the env's `alive`); None: all of them"""
-    global_state: Any = None
+    global_state: jax.Array | None = None
     """[B, state_dim] the environment's global state (state_dim 0 where it has none); None:
     none given (a critic that needs one raises)"""
-    starts: Any = None
+    starts: jax.Array | None = None
     """Recurrent algorithms only ([B, T]): the step's observation begins an episode. Their
     batches are B sequences of T steps ([B, T, ...] in every field above)."""
     memory: Any = ()
@@ -69,6 +69,7 @@ def value_active_mask(batch: Batch, ppo: PPOConfig) -> jax.Array | None:
 
 class ActResult(NamedTuple):
     actions: jax.Array
+    """[n] int32 (discrete) or [n, A] float32 (continuous) joint action"""
     log_probs: jax.Array
     """[n] per-agent log-probabilities of the sampled actions"""
     value: jax.Array
@@ -119,16 +120,27 @@ class Algorithm(Protocol):
     @classmethod
     def build(
         cls, network: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
-    ) -> Any: ...
+    ) -> Algorithm:
+        """The algorithm for an environment of `spec` with the sizes of `network` (and the PPO
+        settings that shape its networks, e.g. `ppo.minibatch_chunks`)."""
+        ...
 
-    def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params: ...
+    def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
+        """Fresh parameters, shaped by one team's obs [n, obs_dim] and action_mask [n, A]."""
+        ...
 
     def act(
         self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
         global_state: jax.Array | None = None,
-    ) -> ActResult: ...
+    ) -> ActResult:
+        """Sample one team's joint action from obs [n, obs_dim] with action_mask [n, A] (True:
+        available; a masked action is never sampled), with its log-probabilities and value."""
+        ...
 
-    def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array: ...
+    def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
+        """The most likely available joint action [n] (continuous: the means [n, A]), for
+        evaluation."""
+        ...
 
     @property
     def recurrent(self) -> bool:
@@ -166,11 +178,17 @@ class Algorithm(Protocol):
 
     def value(
         self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
-    ) -> jax.Array: ...
+    ) -> jax.Array:
+        """The critic's value of one team's obs [n, obs_dim]: [] (team value) or [n]
+        (per-agent values), in the value normaliser's space, as `ActResult.value`."""
+        ...
 
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
-    ) -> tuple[jax.Array, dict[str, jax.Array]]: ...
+    ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """The scalar to minimise on one minibatch (`Batch`, [B, ...]) and its metrics
+        (policy_loss, value_loss, entropy, approx_kl, clip_frac, ...)."""
+        ...
 
     def update(
         self, optimizer: optax.GradientTransformation, params: Params, opt_state: Any,

@@ -89,7 +89,11 @@ class CMAT(PPOAlgorithm):
     capabilities: ClassVar[frozenset[str]] = frozenset(
         {"consensus", "joint_ratio", "minibatch_chunks"}
     )
-    network_fields: ClassVar[tuple[str, ...]] = tuple(f.name for f in fields(NetworkConfig))
+    network_fields: ClassVar[tuple[str, ...]] = tuple(
+        f.name for f in fields(NetworkConfig)
+        if f.name not in ("mlp_layers", "recurrent", "retention_decay", "retention_chunk")
+    )
+    """Every `NetworkConfig` field but the MLP baselines' depth and Sable's retention options."""
 
     reference_defaults: ClassVar[dict[str, Any]] = TUNED_SETTINGS
     """The reference MAT's settings (the dataclass defaults and the suite's column) with the

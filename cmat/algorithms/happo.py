@@ -153,7 +153,8 @@ class HAPPO(MAPPO):
         """One agent's clipped surrogate and entropy; `batch.advantages` already hold M·A. With
         `ppo.active_masks` both average over the samples where the agent is active."""
         distribution = self.agent_distribution(params, agent, batch)
-        mask = None if active_mask(batch, ppo) is None else batch.alive[:, agent]
+        team_mask = active_mask(batch, ppo)
+        mask = None if team_mask is None else team_mask[:, agent]
         log_ratio = distribution.log_prob(batch.actions[:, agent]) - batch.log_probs[:, agent]
         policy_loss, diagnostics = clipped_surrogate_loss(
             log_ratio, batch.advantages, ppo.clip_eps, mask

@@ -209,7 +209,8 @@ def normalize(x: jax.Array, mask: jax.Array | None = None, eps: float = 1e-8) ->
 
 
 class ValueNormState(NamedTuple):
-    """Debiased running mean and mean square of value targets (MAT's ValueNorm)."""
+    """Debiased running mean and mean square of value targets (MAT's ValueNorm,
+    mat/utils/valuenorm.py: β = 0.99999, ε = 1e-5, variance floored at 1e-2), all []."""
 
     mean: jax.Array
     mean_square: jax.Array
@@ -221,11 +222,13 @@ VALUE_NORM_EPS = 1e-5
 
 
 def value_norm_init() -> ValueNormState:
+    """No targets seen: every statistic 0."""
     zero = jnp.zeros((), jnp.float32)
     return ValueNormState(zero, zero, zero)
 
 
 def value_norm_update(state: ValueNormState, targets: jax.Array) -> ValueNormState:
+    """The statistics after one batch of (unnormalised) targets of any shape."""
     beta = VALUE_NORM_BETA
     return ValueNormState(
         mean=beta * state.mean + (1 - beta) * jnp.mean(targets),
@@ -242,10 +245,12 @@ def _moments(state: ValueNormState) -> tuple[jax.Array, jax.Array]:
 
 
 def value_norm_normalize(state: ValueNormState, x: jax.Array) -> jax.Array:
+    """x (returns) in the normalised space the critics predict in."""
     mean, std = _moments(state)
     return (x - mean) / std
 
 
 def value_norm_denormalize(state: ValueNormState, x: jax.Array) -> jax.Array:
+    """x (critic outputs) back in return units, for GAE."""
     mean, std = _moments(state)
     return x * std + mean

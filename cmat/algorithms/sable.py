@@ -6,7 +6,7 @@ mava/systems/sable/anakin/ff_sable.py) does differently, and cmat does with it:
 
 - Every epoch permutes the agents of the whole batch with one random permutation, so the
   decoder is trained along a new agent order each epoch while acting keeps the index order; the
-  stored log-probs stay those of acting (`shuffle_agents`, `permute_agents`).
+  stored log-probs stay those of acting (`permute_agents`).
 - Advantages are normalised per minibatch over all agents, not per update
   (`ppo.normalize_advantages` is off and the loss normalises).
 - Per-agent values and GAE with the team reward, squared-error value loss (½·MSE, clipped with
@@ -114,8 +114,6 @@ def flatten_sequences(batch: Batch) -> Batch:
 @dataclass(frozen=True)
 class Sable(MAT):
     network: SableNetwork
-    shuffle_agents: bool = True
-    """Permute the agents anew every epoch (the reference's `agent_perm`)."""
 
     name: ClassVar[str] = "sable"
     capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values", "recurrent"})
@@ -224,6 +222,7 @@ class Sable(MAT):
             )
             return cast(MATOutput, output)
 
+        assert batch.starts is not None, "a recurrent batch carries its sequences' starts"
         out_axes = MATOutput._make((0, None, 0, 0))
         outputs = jax.vmap(one, out_axes=out_axes)(
             batch.obs, batch.action_mask, batch.actions, batch.memory, batch.starts
@@ -249,6 +248,5 @@ class Sable(MAT):
     ) -> tuple[Params, Any, Metrics]:
         """PPO's epochs × minibatches, the agents permuted anew each epoch."""
         return minibatch_sgd(
-            self.loss, optimizer, params, opt_state, batch, rng, ppo,
-            permute_agents if self.shuffle_agents else None,
+            self.loss, optimizer, params, opt_state, batch, rng, ppo, permute_agents
         )

@@ -23,6 +23,7 @@ from unittest import mock
 import jax
 import jax.numpy as jnp
 
+from cmat.envs.autoreset import auto_reset
 from cmat.envs.protocol import EnvSpec, TimeStep
 
 # JaxMARL prints while importing, after its brax probe rebinds sys.stdout/stderr to
@@ -129,15 +130,7 @@ class JaxMarlEnv:
     def step(self, key: jax.Array, state: Any, actions: jax.Array) -> tuple[Any, TimeStep]:
         """Take joint `actions` [n_agents]; on `done`, return the next episode's first state."""
         step_key, reset_key = jax.random.split(key)
-        next_state, timestep = self.step_in_episode(step_key, state, actions)
-        reset_state, first = self.reset(reset_key)
-        state = jax.tree.map(lambda r, s: jnp.where(timestep.done, r, s), reset_state, next_state)
-        return state, timestep._replace(
-            obs=jnp.where(timestep.done, first.obs, timestep.obs),
-            action_mask=self._action_mask(state),
-            alive=jnp.where(timestep.done, first.alive, timestep.alive),
-            global_state=jnp.where(timestep.done, first.global_state, timestep.global_state),
-        )
+        return auto_reset(*self.step_in_episode(step_key, state, actions), *self.reset(reset_key))
 
     def step_in_episode(
         self, key: jax.Array, state: Any, actions: jax.Array

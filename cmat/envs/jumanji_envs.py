@@ -42,6 +42,7 @@ from jumanji.environments.routing.robot_warehouse.generator import (
 )
 from jumanji.types import TimeStep as JumanjiTimeStep
 
+from cmat.envs.autoreset import auto_reset
 from cmat.envs.protocol import EnvSpec, TimeStep
 
 
@@ -135,20 +136,23 @@ class JumanjiEnv:
 
         As in `JaxMarlEnv.step`, the second key of `jax.random.split(key)` draws the next
         episode (Jumanji's `step` takes no key: its randomness is in `state`)."""
+        step_key, reset_key = jax.random.split(key)
+        return auto_reset(*self.step_in_episode(step_key, state, actions), *self.reset(reset_key))
+
+    def step_in_episode(
+        self, key: jax.Array, state: Any, actions: jax.Array
+    ) -> tuple[Any, TimeStep]:
+        """`step` without the automatic reset (`key` unused: Jumanji's randomness is in the
+        state)."""
         next_state, timestep = self.env.step(self.jumanji_state(state), actions.astype(jnp.int32))
-        done = timestep.last()
-        reset_state, first = self.reset(jax.random.split(key)[1])
-        state = jax.tree.map(
-            lambda r, s: jnp.where(done, r, s), reset_state, self._flat(next_state)
-        )
-        return state, TimeStep(
-            obs=jnp.where(done, first.obs, self._obs(timestep)),
-            action_mask=jnp.where(done, first.action_mask, self._action_mask(timestep)),
+        return self._flat(next_state), TimeStep(
+            obs=self._obs(timestep),
+            action_mask=self._action_mask(timestep),
             reward=jnp.sum(timestep.reward).astype(jnp.float32),
-            done=done,
+            done=timestep.last(),
             won=jnp.asarray(False),
             alive=self._alive(),
-            global_state=first.global_state,
+            global_state=jnp.zeros(0, jnp.float32),
         )
 
     def jumanji_state(self, state: dict[str, jax.Array]) -> Any:

@@ -102,7 +102,6 @@ __all__ = [
     "focus_fire_actions",
     "focus_fire_policy",
     "healer_heuristic_policy",
-    "random_legal_actions",
 ]
 
 MARINE, MARAUDER, MEDIVAC = 0, 1, 6
@@ -498,11 +497,6 @@ def focus_fire_actions(env: HeuristicEnemyHealerSMAX, state: EnemyState) -> jax.
     move = jnp.where(wanted.any(axis=1), chase_move, idle)
     actions = jnp.where(in_reach.any(axis=1), world.num_movement_actions + target, move)
     return jnp.where(alive, actions, STOP)[: world.num_allies]
-
-
-def random_legal_actions(key: jax.Array, state: Any, timestep: TimeStep) -> jax.Array:
-    """Uniformly random available actions, a `first_episode_wins` policy."""
-    return jax.random.categorical(key, jnp.where(timestep.action_mask, 0.0, -jnp.inf))
 
 
 def focus_fire_policy(

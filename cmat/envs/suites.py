@@ -55,7 +55,8 @@ class Suite:
     settings: dict[str, Any]
     """Config values (nested like `TrainConfig`) this suite's runs start from."""
     source: str
-    """Where the settings come from, as written next to them in a run's config.yaml."""
+    """Where the settings come from (`cmat config` prints it under the fields, whose sources
+    read `suite PREFIX`)."""
     host: bool = False
     """Stepped in Python by the host runner (cmat.runners.host), not inside the JAX program."""
 

@@ -17,7 +17,7 @@ from typing import Any
 import yaml
 
 from cmat.experiments.plan import Plan, Run
-from cmat.plots import Curve, eval_curve
+from cmat.plots import Curve, metric_curve
 from cmat.rundir import RunDir
 
 METRIC_NAMES = {"win_rate": "win rate", "episode_return": "episode return"}
@@ -35,7 +35,7 @@ class Line:
     rows: list[dict[str, str]]
 
     def curve(self, metric: str) -> Curve | None:
-        return eval_curve(self.rows, metric)
+        return metric_curve(self.rows, metric)
 
     def scores(self, metric: str, window: float = 0.0) -> list[float]:
         """Each seed's score on `metric`, in seed order: the mean of its greedy evaluations at

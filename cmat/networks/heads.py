@@ -8,6 +8,8 @@ into the most likely action. A critic ends with `ValueHead`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import distrax
 import flax.linen as nn
 import jax
@@ -124,3 +126,37 @@ def greedy_action(action_params: jax.Array, discrete: bool) -> jax.Array:
     if discrete:
         return jnp.argmax(action_params, axis=-1)
     return action_params
+
+
+def decode_in_order(
+    features_of: Callable[[int, jax.Array], jax.Array],
+    policy_params: Callable[[jax.Array, jax.Array], tuple[jax.Array, jax.Array]],
+    action_mask: jax.Array,
+    order: jax.Array,
+    key: jax.Array | None,
+    start: jax.Array,
+    discrete: bool,
+) -> tuple[jax.Array, jax.Array]:
+    """Agents act one after another along `order` [n] (MAT's autoregressive decoding, eq. mat):
+    the k-th agent's decoder features come from `features_of(k, previous action)` (the start
+    action for the first), its action parameters from `policy_params(features, its mask)`, and
+    its action is sampled (greedy where `key` is None) and fed to the next. `action_mask`
+    [n, A] is in agent order. Returns actions [n] (or [n, A]) and log-probs [n] in agent order.
+    """
+    n = order.shape[0]
+    masks = action_mask[order]
+    keys: list[jax.Array | None] = [None] * n if key is None else list(jax.random.split(key, n))
+    previous = start
+    actions, log_probs = [], []
+    for k in range(n):
+        params, log_std = policy_params(features_of(k, previous), masks[k])
+        distribution = action_distribution(params, log_std, discrete)
+        if keys[k] is None:
+            previous = greedy_action(params, discrete)
+            log_prob = distribution.log_prob(previous)
+        else:
+            previous, log_prob = distribution.sample_and_log_prob(seed=keys[k])
+        actions.append(previous)
+        log_probs.append(log_prob)
+    inverse = jnp.argsort(order)
+    return jnp.stack(actions)[inverse], jnp.stack(log_probs)[inverse]

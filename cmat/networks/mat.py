@@ -25,8 +25,7 @@ import jax.numpy as jnp
 from cmat.config import NetworkConfig
 from cmat.networks.heads import (
     ActionHead,
-    action_distribution,
-    greedy_action,
+    decode_in_order,
     mask_unavailable,
     previous_action_features,
     start_action,
@@ -172,27 +171,17 @@ class MATNetwork(nn.Module):
     ) -> tuple[jax.Array, jax.Array]:
         """Acts agent by agent along `order`, feeding each action back (sampled, or the most
         likely one when `key` is None). Returns actions and their log-probs in agent order."""
-        agents, masks = encoded[order], action_mask[order]
-        n = self.num_agents
-        keys: list[jax.Array | None] = [None] * n if key is None else list(jax.random.split(key, n))
+        agents, n = encoded[order], self.num_agents
         caches: list[BlockCache | None] = [None] * len(self.blocks)
-        previous = self.start_action()
-        actions, log_probs = [], []
-        for k in range(n):
+
+        def features_of(k: int, previous: jax.Array) -> jax.Array:
             x = self.embed(previous[None])
             for layer, block in enumerate(self.blocks):
                 x, caches[layer] = block.step(x, agents[k : k + 1], caches[layer], k, n)
-            params, log_std = self.policy_params(x[0], masks[k])
-            distribution = action_distribution(params, log_std, self.discrete)
-            if keys[k] is None:
-                previous = greedy_action(params, self.discrete)
-                log_prob = distribution.log_prob(previous)
-            else:
-                previous, log_prob = distribution.sample_and_log_prob(seed=keys[k])
-            actions.append(previous)
-            log_probs.append(log_prob)
-        inverse = jnp.argsort(order)
-        return jnp.stack(actions)[inverse], jnp.stack(log_probs)[inverse]
+            return x[0]
+
+        return decode_in_order(features_of, self.policy_params, action_mask, order, key,
+                               self.start_action(), self.discrete)
 
     def __call__(
         self, obs: jax.Array, action_mask: jax.Array, actions: jax.Array, order: jax.Array

@@ -27,8 +27,7 @@ import jax.numpy as jnp
 
 from cmat.config import NetworkConfig
 from cmat.networks.heads import (
-    action_distribution,
-    greedy_action,
+    decode_in_order,
     mask_unavailable,
     previous_action_features,
     start_action,
@@ -355,26 +354,17 @@ class SableNetwork(nn.Module):
         (token, cross) `states`. Returns actions and log-probs [n] in agent order and the
         states after the last agent."""
         states = list(states)
-        agents, masks = encoded[order], action_mask[order]
-        n = self.num_agents
-        keys: list[jax.Array | None] = [None] * n if key is None else list(jax.random.split(key, n))
-        previous = self.start_action()
-        actions, log_probs = [], []
-        for k in range(n):
+        agents = encoded[order]
+
+        def features_of(k: int, previous: jax.Array) -> jax.Array:
             x = self.embed_actions(previous[None])
             for layer, block in enumerate(self.decoder_blocks):
                 x, states[layer] = block.step(x, agents[k : k + 1], states[layer], position)
-            params, log_std = self.policy_params(x[0], masks[k])
-            distribution = action_distribution(params, log_std, self.discrete)
-            if keys[k] is None:
-                previous = greedy_action(params, self.discrete)
-                log_prob = distribution.log_prob(previous)
-            else:
-                previous, log_prob = distribution.sample_and_log_prob(seed=keys[k])
-            actions.append(previous)
-            log_probs.append(log_prob)
-        inverse = jnp.argsort(order)
-        return jnp.stack(actions)[inverse], jnp.stack(log_probs)[inverse], states
+            return x[0]
+
+        actions, log_probs = decode_in_order(features_of, self.policy_params, action_mask, order,
+                                             key, self.start_action(), self.discrete)
+        return actions, log_probs, states
 
     def one_step(self) -> tuple[jax.Array, jax.Array]:
         """starts and positions of a lone timestep: [True] and [0]."""

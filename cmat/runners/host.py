@@ -164,10 +164,6 @@ class HostTrainer:
             env.close()
         self._spare = []
 
-    def worker_pids(self) -> list[int]:
-        """Process ids of the training pool's workers (empty in-process)."""
-        return self._pool.worker_pids() if self._pool is not None else []
-
     def env_counters(self) -> dict[str, np.ndarray]:
         """Per seed, over its training environments so far: simulator restarts
         (`env_restarts`) and non-finite values replaced by 0 (`env_nonfinite`)."""

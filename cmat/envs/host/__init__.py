@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from cmat.config import NONFINITE_POLICIES
 from cmat.envs import HOST_PREFIXES
 from cmat.envs.host.protocol import AutoReset, HostAgentIdWrapper, HostEnv, HostTimeStep
 from cmat.errors import CmatError
@@ -43,7 +44,12 @@ def make_host_env(
     """Build the host env `env_id`; `agent_id` appends one-hot agent ids to observations;
     `seed` seeds simulators that take their seed when built (GRF; others seed at `reset`);
     `nonfinite` ("error" or "warn", `TrainConfig.host_nonfinite`) says what a NaN or infinite
-    observation, reward or state does (`cmat.envs.host.protocol.AutoReset`)."""
+    observation, reward or state does (`cmat.envs.host.protocol.AutoReset`).
+
+    Raises CmatError for an unknown prefix or `nonfinite` value."""
+    if nonfinite not in NONFINITE_POLICIES:
+        raise CmatError(f"nonfinite must be one of {', '.join(NONFINITE_POLICIES)}, "
+                        f"got {nonfinite!r}")
     prefix, _, name = env_id.partition(":")
     env: AutoReset
     if prefix == "pettingzoo":

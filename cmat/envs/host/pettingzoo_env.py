@@ -71,7 +71,7 @@ def implements_state(env: Any) -> bool:
     return getattr(type(env), "state", None) is not ParallelEnv.state
 
 
-def probe_state_dim(env: Any, env_id: str) -> int:
+def probe_state_dim(env: Any) -> int:
     """The size of `env.state()`: from `state_space` where the env declares one, else from one
     call after a probing reset; 0 where `state()` is not implemented."""
     import gymnasium.spaces as spaces
@@ -176,7 +176,7 @@ class PettingZooEnv(AutoReset):
             has_win_rate=bool(metadata.get("has_win_rate", False)),
             action_low=low,
             action_high=high,
-            state_dim=probe_state_dim(env, env_id),
+            state_dim=probe_state_dim(env),
         )
         self._index = {agent: index for index, agent in enumerate(self.agents)}
         self._live: set[str] = set()

@@ -173,9 +173,6 @@ class InProcessPool:
                 continue
             return timestep._replace(reward=0.0, done=True, won=False)
 
-    def worker_pids(self) -> list[int]:
-        return []
-
     def close(self) -> None:
         """Close every environment."""
         for env in self.envs:

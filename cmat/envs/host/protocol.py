@@ -18,11 +18,6 @@ import numpy as np
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
 
-NONFINITE_POLICIES = ("error", "warn")
-"""What a host environment does with a NaN or infinite observation, reward or state
-(`TrainConfig.host_nonfinite`): stop the run with a one-line error, or replace the values by 0
-and count them (`metrics.csv` column `env_nonfinite`)."""
-
 
 class SimulatorCrash(Exception):
     """An exception raised inside a simulator's own `reset` or `step` (not in cmat's code):
@@ -59,7 +54,8 @@ class HostTimeStep(NamedTuple, Generic[_Reward, _Flag]):
     alive: np.ndarray
     """[n_agents] bool: agents active in `obs` (False: left the episode, or not in it yet)."""
     global_state: np.ndarray
-    """[state_dim] float32 global state; shape [0] (host environments provide none yet)."""
+    """[state_dim] float32 global state: a PettingZoo env's `state()` where it implements one
+    (MaMuJoCo: the single-agent observation); shape [0] where the env has none (GRF)."""
 
 
 HostStep = HostTimeStep[float, bool]
@@ -75,7 +71,7 @@ class HostEnv(Protocol):
 
     @property
     def nonfinite(self) -> str:
-        """"error" or "warn" (`NONFINITE_POLICIES`)."""
+        """"error" or "warn" (`cmat.config.NONFINITE_POLICIES`)."""
         ...
 
     @property
