@@ -22,15 +22,46 @@ from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
 from cmat.networks.retention import (
     MultiScaleRetention,
+    decay_state,
     retention_chunkwise,
     retention_parallel,
-    retention_recurrent,
+    retention_step,
 )
 from cmat.networks.sable import SableNetwork
 from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.host import HostTrainer
 from cmat.runners.learner import Rollout, make_batch
+
+
+def retention_recurrent(
+    q: jax.Array, k: jax.Array, v: jax.Array, state: jax.Array, kappa: jax.Array,
+    starts: jax.Array, causal: bool,
+) -> tuple[jax.Array, jax.Array]:
+    """The recurrent form, the reference the others are checked against: timestep by timestep
+    and, in the causal form, agent by agent, as acting runs it (`MultiScaleRetention.step`).
+    Same shapes as `retention_parallel`."""
+
+    def timestep(
+        state: jax.Array, xs: tuple[jax.Array, ...]
+    ) -> tuple[jax.Array, jax.Array]:
+        q_t, k_t, v_t, start = xs
+        state = decay_state(state, kappa, start)
+        if not causal:
+            state = retention_step(state, k_t, v_t)
+            return state, q_t @ state
+
+        def agent(state: jax.Array, kqv: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
+            q_i, k_i, v_i = kqv
+            state = retention_step(state, k_i[None], v_i[None])
+            return state, q_i @ state
+
+        return jax.lax.scan(agent, state, (q_t, k_t, v_t))
+
+    state, outputs = jax.lax.scan(timestep, state, (q, k, v, starts))
+    return outputs, state
+
+
 
 STEPS, AGENTS, HEAD, ACTIONS, OBS_DIM = 6, 3, 4, 5, 7
 pytestmark = pytest.mark.quick_compiles

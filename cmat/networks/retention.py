@@ -4,13 +4,14 @@ A sequence is T timesteps of N agent tokens each. Retention from token (t, i) to
 q_(t,i)·k_(s,j) by κ^(t−s), where κ is the head's decay, and by 0 when (s, j) comes after
 (t, i): a later timestep, a later agent of the same timestep in the causal (decoder) form, or an
 earlier episode (`starts[t]` says timestep t begins a new one). No softmax, so the same output has
-three forms, equal up to floating-point order (tests/test_retention.py):
+three forms, equal up to floating-point order (tests/test_sable.py):
 
 - parallel: one [T·N, T·N] weighted product (`retention_parallel`; training, one chunk);
 - chunkwise: the parallel form per chunk of timesteps, a [hs, hs] state carried between chunks
   (`retention_chunkwise`; training with bounded memory);
 - recurrent: per timestep, decay the state by κ (reset it at an episode start), then add the
-  agents' k^T v one by one (causal) or all at once (`retention_recurrent`; acting).
+  agents' k^T v one by one (causal) or all at once (`MultiScaleRetention.decay` and `step`;
+  acting).
 
 As in Sable's reference (mava/networks/retention.py), the state carried into a sequence enters
 timestep t as κ^(t+1)·S (the state is decayed once at every timestep before it is read), and
@@ -90,33 +91,6 @@ def retention_chunkwise(
 
     state, outputs = jax.lax.scan(chunk, state, (split(q), split(k), split(v), split(starts)))
     return outputs.reshape(q.shape[0], *outputs.shape[2:]), state
-
-
-def retention_recurrent(
-    q: jax.Array, k: jax.Array, v: jax.Array, state: jax.Array, kappa: jax.Array,
-    starts: jax.Array, causal: bool,
-) -> tuple[jax.Array, jax.Array]:
-    """Timestep by timestep and, in the causal form, agent by agent, as acting runs it.
-    Same shapes as `retention_parallel`."""
-
-    def timestep(
-        state: jax.Array, xs: tuple[jax.Array, ...]
-    ) -> tuple[jax.Array, jax.Array]:
-        q_t, k_t, v_t, start = xs
-        state = decay_state(state, kappa, start)
-        if not causal:
-            state = retention_step(state, k_t, v_t)
-            return state, q_t @ state
-
-        def agent(state: jax.Array, kqv: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
-            q_i, k_i, v_i = kqv
-            state = retention_step(state, k_i[None], v_i[None])
-            return state, q_i @ state
-
-        return jax.lax.scan(agent, state, (q_t, k_t, v_t))
-
-    state, outputs = jax.lax.scan(timestep, state, (q, k, v, starts))
-    return outputs, state
 
 
 def decay_state(state: jax.Array, kappa: jax.Array, start: jax.Array) -> jax.Array:
