@@ -226,6 +226,18 @@ def test_transformers_start_with_the_reference_mat_gains(algo: str) -> None:
     assert np.linalg.norm(value_outputs[0]) == pytest.approx(0.01, rel=1e-4)
 
 
+@pytest.mark.parametrize("discrete", [True, False])
+def test_mats_action_embedding_has_a_bias_for_continuous_actions_only(discrete: bool) -> None:
+    """ma_transformer.py: `nn.Linear(action_dim + 1, n_embd, bias=False)` for discrete actions,
+    `nn.Linear(action_dim, n_embd)` for continuous ones."""
+    network = load_config(overrides=["algo=mat"]).network
+    algorithm = build_algorithm("mat", network, spec(discrete=discrete))
+    obs, mask = jnp.ones((3, 6)), jnp.ones((3, 4), bool)
+    params = jax.jit(algorithm.init)(jax.random.PRNGKey(0), obs, mask)
+    embedding = params["params"]["action_embedding"]
+    assert set(embedding) == ({"kernel"} if discrete else {"kernel", "bias"})
+
+
 @pytest.mark.parametrize("algo", ["cmat", "mat", "pmat", "triple_bert", "mappo", "happo"])
 def test_continuous_policies_start_at_std_sigmoid_one_half(algo: str) -> None:
     network = load_config(overrides=[f"algo={algo}"]).network

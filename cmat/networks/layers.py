@@ -20,11 +20,13 @@ query, key, value and output projections, the second feed-forward layer, the out
 Blocks take it as their `gain` (`NetworkConfig.init_gain`)."""
 
 
-def dense(features: int, gain: float = HIDDEN_GAIN, name: str | None = None) -> nn.Dense:
-    """A dense layer with orthogonal weights of the given gain and zero bias."""
+def dense(
+    features: int, gain: float = HIDDEN_GAIN, name: str | None = None, use_bias: bool = True
+) -> nn.Dense:
+    """A dense layer with orthogonal weights of the given gain and zero bias (or none)."""
     return nn.Dense(
         features, kernel_init=nn.initializers.orthogonal(gain), bias_init=nn.initializers.zeros,
-        name=name,
+        name=name, use_bias=use_bias,
     )
 
 

@@ -125,7 +125,9 @@ class OrderScorer(nn.Module):
 
 
 class MATNetwork(nn.Module):
-    """MAT actor-critic over one team; the decoder follows a given decision order."""
+    """MAT actor-critic over one team; the decoder follows a given decision order. The
+    previous action's embedding has no bias for discrete actions, as the reference's
+    `action_encoder` (`nn.Linear(action_dim + 1, n_embd, bias=False)`, ma_transformer.py)."""
 
     config: NetworkConfig
     num_agents: int
@@ -137,7 +139,7 @@ class MATNetwork(nn.Module):
         gain = cfg.init_gain
         self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain)
         self.value_head = AgentValueHead(cfg.n_embd, gain)
-        self.action_embedding = dense(cfg.n_embd)
+        self.action_embedding = dense(cfg.n_embd, use_bias=not self.discrete)
         self.token_norm = nn.LayerNorm()
         self.blocks = [MATDecodeBlock(cfg.n_embd, cfg.n_head, gain) for _ in range(cfg.n_block)]
         self.head = ActionHead(cfg.n_embd, self.action_dim, self.discrete, gain, cfg.log_std_init)
