@@ -9,7 +9,8 @@ scenario API). One config for every point: the reference PPO settings (15 epochs
 minibatch) with `--envs` environments × `--rollout` steps per update. Each point is one fresh
 process: it compiles a chunk of `--updates` updates, times `--repeats` further chunks (training
 steps/s, all of one seed's env steps over wall time; the point's figure is their median) and
-reports the process's peak resident memory (which includes compilation). CMAT's decoder runs m
+reports its peak memory: the accelerator allocator's peak on a GPU, else the process's peak
+resident memory (which includes compilation). CMAT's decoder runs m
 iterations, m = n by default; the 'cmat m=4' line fixes m = 4 to show what the knob buys.
 
 Growth with the team: for each line, the exponent b of time per env step ∝ n^b is the
@@ -66,9 +67,12 @@ for _ in range(int(repeats)):
     state, _ = trainer.train_chunk(state)
     jax.block_until_ready(state.learner.params)
     runs.append(int(updates) * config.steps_per_update / (time.perf_counter() - start))
+device_peaks = [(d.memory_stats() or {}).get("peak_bytes_in_use", 0) for d in jax.local_devices()]
 print(json.dumps({"n": trainer.env_spec.num_agents, "sps": statistics.median(runs),
                   "sps_runs": runs,
-                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "device_peak_mb": (max(device_peaks) / 2**20
+                                     if jax.default_backend() != "cpu" else None)}))
 """
 
 
@@ -121,7 +125,7 @@ def main() -> None:
                 point["run"] = run
             results.setdefault(line, {})[team] = point
             shown = point if isinstance(point, str) else (
-                f"n={point['n']:.0f} {point['sps']:.0f} steps/s {point['peak_mb']:.0f} MB")
+                f"n={point['n']:.0f} {point['sps']:.0f} steps/s {memory_mb(point):.0f} MB")
             print(f"{team:12} {line:10} {shown}", flush=True)
     (args.out / "agent_scaling.json").write_text(json.dumps(results, indent=1))
     write(results, args)
@@ -178,6 +182,11 @@ def exponents(results: dict[str, Points], lines: list[str]) -> list[str]:
     return text
 
 
+def memory_mb(point: dict[str, Any]) -> float:
+    """The accelerator allocator's peak where the point ran on one, else peak resident memory."""
+    return float(point.get("device_peak_mb") or point["peak_mb"])
+
+
 def write(results: dict[str, Points], args: argparse.Namespace) -> None:
     import matplotlib
 
@@ -185,7 +194,8 @@ def write(results: dict[str, Points], args: argparse.Namespace) -> None:
     import matplotlib.pyplot as plt
 
     header = (f"SMAX teams, {args.envs} envs × {args.rollout} steps per update, reference PPO "
-              f"settings, one seed; training steps/s / peak resident MB per process")
+              f"settings, one seed; training steps/s / peak MB (accelerator memory where the "
+              f"point ran on one, else the process's resident memory)")
     lines = [line for line in LINES if line in results]
     def agents(team: str) -> float:
         sizes = [p["n"] for line in lines if isinstance(p := results[line].get(team), dict)]
@@ -197,7 +207,7 @@ def write(results: dict[str, Points], args: argparse.Namespace) -> None:
     for team in teams:
         points = [results[line].get(team, "not run") for line in lines]
         ns = [p["n"] for p in points if not isinstance(p, str)]
-        cells = [p if isinstance(p, str) else f"{p['sps']:.0f} / {p['peak_mb']:.0f}"
+        cells = [p if isinstance(p, str) else f"{p['sps']:.0f} / {memory_mb(p):.0f}"
                  for p in points]
         rows.append(f"| {team} | {ns[0]:.0f} | " if ns else f"| {team} | ? | ")
         runs = sorted({str(p.get("run", "?")) for p in points if isinstance(p, dict)})
@@ -208,13 +218,13 @@ def write(results: dict[str, Points], args: argparse.Namespace) -> None:
     print(table)
     figure, (speed, memory) = plt.subplots(1, 2, figsize=(10, 4))
     for line in lines:
-        curve = sorted((p["n"], p["sps"], p["peak_mb"]) for p in results[line].values()
+        curve = sorted((p["n"], p["sps"], memory_mb(p)) for p in results[line].values()
                        if not isinstance(p, str))
         if curve:
             n, sps, mb = zip(*curve, strict=True)
             speed.plot(n, sps, marker="o", label=line)
             memory.plot(n, mb, marker="o", label=line)
-    for axis, label in ((speed, "training steps/s"), (memory, "peak resident memory (MB)")):
+    for axis, label in ((speed, "training steps/s"), (memory, "peak memory (MB)")):
         axis.set(xscale="log", yscale="log", xlabel="agents per team n", ylabel=label)
         axis.grid(alpha=0.3)
     speed.legend()

@@ -1,27 +1,41 @@
 #!/usr/bin/env bash
-# The GPU figures, in about 10 minutes on one GPU machine, all outputs in one folder.
+# The GPU figures on one GPU machine, in 10-minute calls, all outputs in one folder.
 #
 # Prepare here: `bash scripts/gpu_wheels.sh` (cmat's dependencies the GPU image lacks, and
 # pytest, into .whl/). There, in the repository root, with .whl carried:
 #   bash benchmarks/gpu.sh OUT
 # Steps, most wanted first, each under its own time limit so that the whole stays within
 # GPU_SECONDS (default 570; a step that would pass it is cut or skipped) and an interrupted step
-# keeps the lines it printed. Training steps/s and peak host memory come from
-# benchmarks/throughput.py (one process per line, each algorithm at its reference settings):
-#   OUT/throughput_3s5z_vs_3s6z_large.log  CMAT, MAT and MAPPO on SMAX 3s5z_vs_3s6z at 8,192
+# keeps the lines it printed. Everything goes to OUT/gpu.log, each step under a "== NAME" line
+# with its command, exit code and the seconds since the start. Training steps/s, peak host
+# memory and the GPU allocator's peak come from benchmarks/throughput.py (one process per line,
+# each algorithm at its reference settings). The steps:
+#   throughput_3s5z_vs_3s6z_large  CMAT, MAT and MAPPO on SMAX 3s5z_vs_3s6z at 8,192
 #       environments; CMAT and MAT pass the 819,200-sample minibatch in 8 chunks
 #       (`ppo.minibatch_chunks`: the same gradient in less memory), MAPPO whole;
-#   OUT/throughput_27m_vs_30m.log          the same three on 27m_vs_30m at 1,024 environments;
-#   OUT/scaling/ and scaling.log           the agent-scaling points of 3m, 27m_vs_30m and 100m
-#       (benchmarks/agent_scaling.py; its table, PNG and JSON if the step ends in time) at 256
-#       environments;
-#   OUT/throughput_3s5z_vs_3s6z_small.log  3s5z_vs_3s6z at 1,024 environments;
-#   OUT/tests.log                          the fast core of the test suite (networks, losses,
-#       trainer, chunks);
-#   OUT/gpu.log                            all of it in order, with the devices and exit codes.
+#   throughput_27m_vs_30m          the same three on 27m_vs_30m at 1,024 environments;
+#   scaling                        CMAT and MAT agent-scaling points, 3m, 27m_vs_30m, 100m, at 256
+#       environments (benchmarks/agent_scaling.py; its table, PNG and JSON in OUT/scaling/ if
+#       the step ends in time);
+#   throughput_3s5z_vs_3s6z_small  3s5z_vs_3s6z at 1,024 environments;
+#   tests                          the fast core of the test suite on the GPU (the network's
+#       properties: agent permutation, action masks, attention; chunked gradients).
+# A full pass takes about 20 minutes on one H200 (2026-12-04: each throughput process spent
+# 20-85 s compiling; the scaling step finished one point in 120 s), more than one call:
+# GPU_STEPS="NAME ..." runs the named steps alone, in the order above, e.g.
+# GPU_STEPS="scaling tests" after a call that ran the two throughput steps.
 # GPU_QUICK=1 runs the same steps at CPU sizes: a check of the script, not a figure.
 set -uo pipefail
 out=${1:?usage: gpu.sh OUT}
+steps=(throughput_3s5z_vs_3s6z_large throughput_27m_vs_30m scaling throughput_3s5z_vs_3s6z_small
+  tests)
+read -ra chosen <<< "${GPU_STEPS:-${steps[*]}}"
+for name in "${chosen[@]}"; do
+  [[ " ${steps[*]} " == *" $name "* ]] || {
+    echo "GPU_STEPS: unknown step $name (steps: ${steps[*]})" >&2; exit 2; }
+done
+selected() { [[ " ${chosen[*]} " == *" $1 "* ]]; }
+
 mkdir -p "$out"
 exec > >(tee "$out/gpu.log") 2>&1
 # shellcheck source=benchmarks/gpu_env.sh
@@ -35,15 +49,15 @@ else
   small=1024 large=8192 scaling_envs=256 teams=(3m 27m_vs_30m 100m)
 fi
 
-step() {  # step NAME LIMIT COMMAND...: within LIMIT and the time left, output into OUT/NAME.log
+step() {  # step NAME LIMIT COMMAND...: within LIMIT and the time left
   local name=$1 limit=$2
   shift 2
   local left=$(( budget - ($(date +%s) - start) ))
   (( left < limit )) && limit=$left
   if (( limit <= 5 )); then echo "== $name: skipped (time budget spent)"; return; fi
   echo "== $name (at most $limit s): $*"
-  timeout "$limit" bash -c '"$@"' "$name" "$@" 2>&1 | tee "$out/$name.log"
-  echo "== $name: exit code ${PIPESTATUS[0]} after $(( $(date +%s) - start )) s (124: time limit)"
+  timeout "$limit" bash -c '"$@"' "$name" "$@"
+  echo "== $name: exit code $? after $(( $(date +%s) - start )) s (124: time limit)"
 }
 
 compare() {  # compare ENV ENVS ALGO...: benchmarks/throughput.py's algorithm comparison
@@ -57,14 +71,15 @@ compare() {  # compare ENV ENVS ALGO...: benchmarks/throughput.py's algorithm co
 export -f compare
 export PY
 
-step throughput_3s5z_vs_3s6z_large 240 compare 3s5z_vs_3s6z "$large" \
-  cmat:ppo.minibatch_chunks=8 mat:ppo.minibatch_chunks=8 mappo
-step throughput_27m_vs_30m 110 compare 27m_vs_30m "$small" cmat mat mappo
-step scaling 120 "$PY" benchmarks/agent_scaling.py --out "$out/scaling" --teams "${teams[@]}" \
-  --envs "$scaling_envs" --updates 1
-step throughput_3s5z_vs_3s6z_small 60 compare 3s5z_vs_3s6z "$small" cmat mat mappo
-step tests 40 "$PY" -m pytest -q -o addopts= -m "not slow" -p no:cacheprovider \
-  tests/test_network.py tests/test_training.py tests/test_minibatch_chunks.py \
-  tests/test_cmat_options.py
+selected throughput_3s5z_vs_3s6z_large && step throughput_3s5z_vs_3s6z_large 240 \
+  compare 3s5z_vs_3s6z "$large" cmat:ppo.minibatch_chunks=8 mat:ppo.minibatch_chunks=8 mappo
+selected throughput_27m_vs_30m && step throughput_27m_vs_30m 300 \
+  compare 27m_vs_30m "$small" cmat mat mappo
+selected scaling && step scaling 360 "$PY" benchmarks/agent_scaling.py --out "$out/scaling" \
+  --teams "${teams[@]}" --envs "$scaling_envs" --updates 1 --lines cmat mat
+selected throughput_3s5z_vs_3s6z_small && step throughput_3s5z_vs_3s6z_small 150 \
+  compare 3s5z_vs_3s6z "$small" cmat mat mappo
+selected tests && step tests 150 "$PY" -m pytest -q -o addopts= -m "not slow" \
+  -p no:cacheprovider tests/test_network.py tests/test_minibatch_chunks.py
 echo "== done after $(( $(date +%s) - start )) s"
 ls -la "$out"

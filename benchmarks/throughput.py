@@ -136,7 +136,16 @@ def breakdown(env_id: str, num_envs: int, repeats: int) -> dict[str, float]:
     }
 
 
-def measure_training(env: str, algo: str, overrides: list[str], updates: int) -> dict[str, float]:
+def device_peak_gb() -> float | None:
+    """Peak bytes the accelerators' allocators held (GB, largest device); None on CPU."""
+    import jax
+
+    stats = [device.memory_stats() or {} for device in jax.local_devices()]
+    peaks = [entry["peak_bytes_in_use"] for entry in stats if "peak_bytes_in_use" in entry]
+    return max(peaks) / 1e9 if peaks and jax.default_backend() != "cpu" else None
+
+
+def measure_training(env: str, algo: str, overrides: list[str], updates: int) -> dict[str, Any]:
     import jax
 
     from cmat.resolve import load_config
@@ -159,6 +168,7 @@ def measure_training(env: str, algo: str, overrides: list[str], updates: int) ->
         "compile_seconds": first - run,
         "seconds_per_update": run / updates,
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+        "peak_device_gb": device_peak_gb(),
     }
 
 
@@ -166,7 +176,7 @@ def compare_algorithms(args: argparse.Namespace) -> None:
     print(f"Training throughput on {args.env} ({args.updates} updates per timed chunk; "
           "each algorithm with its own defaults from cmat.config)")
     print(f"{'algo':<12} {'preset':<10} {'steps/s':>9} {'s/update':>9} {'compile s':>10} "
-          f"{'peak RSS GB':>12}  overrides")
+          f"{'peak RSS GB':>12} {'device GB':>10}  overrides")
     for line in args.algo or algorithm_names():
         algo, _, own = line.partition(":")
         for preset in args.preset or ["reference"]:
@@ -179,9 +189,12 @@ def compare_algorithms(args: argparse.Namespace) -> None:
                 print(f"{line:<12} {preset:<10} failed: {reason}")
                 continue
             result = json.loads(done.stdout.strip().splitlines()[-1])
+            device_gb = result["peak_device_gb"]
             print(f"{line:<12} {preset:<10} {result['steps_per_second']:>9.0f} "
                   f"{result['seconds_per_update']:>9.2f} {result['compile_seconds']:>10.1f} "
-                  f"{result['peak_rss_gb']:>12.2f}  {' '.join(overrides) or '-'}", flush=True)
+                  f"{result['peak_rss_gb']:>12.2f} "
+                  f"{'-' if device_gb is None else f'{device_gb:.2f}':>10}  "
+                  f"{' '.join(overrides) or '-'}", flush=True)
 
 
 def algorithm_line(text: str) -> str:
