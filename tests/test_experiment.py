@@ -22,7 +22,7 @@ import pytest
 import yaml
 from rliable import metrics as rliable_metrics
 
-from cmat.algorithms import algorithm_names
+from cmat.algorithms import ALGORITHM_LABELS, algorithm_names
 from cmat.cli import main
 from cmat.envs.host import grf
 from cmat.errors import CmatError, SuiteUnavailable
@@ -37,7 +37,7 @@ from cmat.experiments.lines import (
 )
 from cmat.experiments.plan import make_plan, schedule
 from cmat.experiments.runner import run_experiment
-from cmat.experiments.spec import ALGO_LABELS, load_spec
+from cmat.experiments.spec import load_spec
 from cmat.experiments.statistics import aggregate, improvement_probability, iqm
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
@@ -519,7 +519,7 @@ SPEC = {"steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"]}
         ({"variants": {"a": {"algos": ["mat"]}, "ft": {"from": "a", "finetune": "action"}}},
          "variant 'a' it starts from has no cmat runs"),
         ({"variants": {"a": {}, "ft": {"from": "a", "finetune": "action", "algos": ["mat"]}}},
-         "fine-tuning freezes CMAT's blocks; give it algos: [cmat]"),
+         "fine-tuning stage 'action' freezes CMAT's blocks and is supported only for algo cmat"),
         ({"variants": {"a": {"from": "b", "finetune": "action"},
                        "b": {"from": "a", "finetune": "consensus"}}}, "form a cycle"),
         ({"variants": {"a": {"figure": "fig3"}}}, "figure must be one or a list of"),
@@ -734,7 +734,7 @@ def test_a_spec_names_the_paper_preset_or_the_defaults(tmp_path: Path) -> None:
 
 
 def test_every_algorithm_has_a_legend_label() -> None:
-    assert set(ALGO_LABELS) == set(algorithm_names())
+    assert list(ALGORITHM_LABELS) == list(algorithm_names())
 
 
 def test_published_suite_means_are_listed_for_a_suites_tasks_and_drawn_only_on_its_scale(

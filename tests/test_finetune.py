@@ -116,7 +116,7 @@ def as_algorithm(config: dict, algo: str) -> dict:
 @pytest.mark.parametrize(
     ("edit", "args", "message"),
     [
-        ({"algo": "mat"}, [], "fine-tuning freezes CMAT's blocks;"),
+        ({"algo": "mat"}, [], "is supported only for algo cmat, got 'mat'"),
         ({}, ["--set", "network.n_embd=32"], "fine-tuning cannot change network"),
         ({}, ["--set", "seeds=3"], "fine-tuning cannot change seeds"),
         ({}, ["--set", "algo=mat"], "fine-tuning cannot change algo"),

@@ -34,6 +34,17 @@ ALGORITHM_CLASSES = {
 list them. The names are here, not read from the classes, so that the CLI can list them and
 check a config's `algo` without importing JAX."""
 
+ALGORITHM_LABELS = {
+    "cmat": "CMAT",
+    "mat": "MAT",
+    "pmat": "PMAT",
+    "triple_bert": "Triple-BERT",
+    "happo": "HAPPO",
+    "mappo": "MAPPO",
+    "sable": "Sable",
+}
+"""Each algorithm's name in tables, figures and claims (the papers' spelling)."""
+
 OPTION_CAPABILITIES = {
     "network.consensus_policy": ("consensus", "deterministic"),
     "ppo.joint_clip": ("joint_ratio", "joint"),
@@ -93,18 +104,26 @@ def build_algorithm(
     return algorithm
 
 
+def finetune_stage_error(algo: str, stage: str) -> str | None:
+    """Why the named algorithm cannot run the fine-tuning stage (not among its class's
+    `finetune_stages`), or None; the one message of `cmat train`, `cmat finetune` and an
+    experiment spec."""
+    if stage in algorithm_class(algo).finetune_stages:
+        return None
+    able = [name for name, cls in registry().items() if stage in cls.finetune_stages]
+    return (f"fine-tuning stage {stage!r} freezes CMAT's blocks and is supported only for algo "
+            f"{', '.join(able) or 'none'}, got {algo!r}")
+
+
 def check_config(config: TrainConfig) -> TrainConfig:
     """Reject a config whose algorithm is unknown, cannot fine-tune in `config.finetune`, or
     lacks the capability one of its options needs (`OPTION_CAPABILITIES`); returns it.
 
     Raises CmatError naming the field and the algorithms that accept it."""
     cls = algorithm_class(config.algo)
-    if config.finetune is not None and config.finetune not in cls.finetune_stages:
-        able = [n for n, other in registry().items() if config.finetune in other.finetune_stages]
-        raise CmatError(
-            f"invalid config: fine-tuning (finetune={config.finetune}) is supported only for "
-            f"algo {', '.join(able) or 'none'}, got {config.algo!r}"
-        )
+    if config.finetune is not None and (error := finetune_stage_error(config.algo,
+                                                                      config.finetune)):
+        raise CmatError(f"invalid config: {error}")
     for field, (capability, neutral) in OPTION_CAPABILITIES.items():
         section, _, name = field.partition(".")
         value = getattr(getattr(config, section), name)

@@ -45,7 +45,8 @@ from typing import Any
 
 import numpy as np
 
-from cmat.experiments.spec import ALGO_LABELS, ExperimentSpec
+from cmat.algorithms import ALGORITHM_LABELS
+from cmat.experiments.spec import ExperimentSpec
 from cmat.experiments.statistics import bootstrap, improvement_probability, interval, iqm, normalise
 
 SEPARATION = 0.5
@@ -227,7 +228,7 @@ def judge_claims(
         return sum(covered({lines[x]["variant"], lines[y]["variant"]}, in_game) for y in ys)
 
     in_spec = {algo for v in spec.variants if "main" in v.figures for algo in v.algos}
-    absent = tuple(ALGO_LABELS[algo] for algo in PAPER_BASELINES if algo not in in_spec)
+    absent = tuple(ALGORITHM_LABELS[algo] for algo in PAPER_BASELINES if algo not in in_spec)
     claims: list[Claim] = []
     for label in cmat_lines:
         claims.append(Claim("a", f"{CLAIMS['a']} ({label})", pairs(label, baselines, benchmark),

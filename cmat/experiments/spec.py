@@ -17,7 +17,7 @@ from typing import Any
 
 import yaml
 
-from cmat.algorithms import algorithm_class, algorithm_names
+from cmat.algorithms import ALGORITHM_LABELS, algorithm_names, finetune_stage_error
 from cmat.config import FINETUNE_MODES, load_yaml
 from cmat.errors import CmatError, read_text
 
@@ -26,8 +26,6 @@ SPEC_KEYS = ("name", "description", "steps", "seeds", "seed", "seeds_per_run", "
              "algos", "variants", "bootstrap_reps", "score_window")
 ENV_KEYS = ("id", "steps", "set", "label", "unavailable")
 VARIANT_KEYS = ("algos", "envs", "set", "steps", "from", "finetune", "figure", "label")
-ALGO_LABELS = {"cmat": "CMAT", "mat": "MAT", "pmat": "PMAT", "triple_bert": "Triple-BERT",
-               "happo": "HAPPO", "mappo": "MAPPO", "sable": "Sable"}
 
 
 @dataclass(frozen=True)
@@ -66,9 +64,9 @@ class Variant:
     def line_label(self, algo: str) -> str:
         """The legend entry of this variant's `algo` runs."""
         if self.label is None:
-            name = ALGO_LABELS.get(algo, algo)
+            name = ALGORITHM_LABELS[algo]
             return name if self.name == "default" else f"{name} ({self.name})"
-        return self.label if len(self.algos) == 1 else f"{ALGO_LABELS.get(algo, algo)} {self.label}"
+        return self.label if len(self.algos) == 1 else f"{ALGORITHM_LABELS[algo]} {self.label}"
 
 
 @dataclass(frozen=True)
@@ -186,10 +184,10 @@ def variant(
     variant_algos = (
         algo_list(settings["algos"], f"{where}: algos") if "algos" in settings else algos
     )
-    if finetune is not None and any(
-        finetune not in algorithm_class(algo).finetune_stages for algo in variant_algos
-    ):
-        raise CmatError(f"{where}: fine-tuning freezes CMAT's blocks; give it algos: [cmat]")
+    if finetune is not None:
+        for algo in variant_algos:
+            if error := finetune_stage_error(algo, finetune):
+                raise CmatError(f"{where}: {error}")
     figure = settings.get("figure", "main")
     figures = tuple(figure) if isinstance(figure, list) else (figure,)
     for kind in figures:

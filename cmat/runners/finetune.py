@@ -15,7 +15,7 @@ import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cmat.algorithms import algorithm_class, check_config
+from cmat.algorithms import check_config, finetune_stage_error
 from cmat.config import ConfigSources, TrainConfig, validate
 from cmat.errors import CmatError
 from cmat.resolve import resolve_config
@@ -38,11 +38,8 @@ def finetune_config(
     """The source run's config with the fine-tuning stage, its budget and `key=value` overrides
     (e.g. a lower ppo.lr) applied, and each value's source (`source_sources`, the source run's,
     for what it keeps)."""
-    if mode not in algorithm_class(source.algo).finetune_stages:
-        raise CmatError(
-            f"fine-tuning freezes CMAT's blocks; {source_dir} is a {source.algo!r} run, which "
-            f"has no fine-tuning stage {mode!r}"
-        )
+    if error := finetune_stage_error(source.algo, mode):
+        raise CmatError(f"{source_dir}: {error}")
     for override in overrides:
         key = override.split("=", 1)[0].strip()
         field = key.split(".", 1)[0]
