@@ -6,10 +6,13 @@
 # .whl/). There, in the repository root, with .whl carried:
 #   bash benchmarks/gpu_grid_slice.sh OUT 'smax_2s3z/default/pmat-*' 'smax_2s3z/default/happo-*'
 # It runs `cmat experiment ... --only PATTERN...` into OUT/grid for at most GPU_SLICE_SECONDS
-# (default 480), then writes OUT/RUN.tar.gz for each run directory it touched (at most 7, the
-# rest of the 8 files a call brings back is OUT/slice.log). Unpack the archives into the CPU
-# grid's directory (`tar -xzf RUN.tar.gz -C DIR/runs`): complete runs are reused there, runs
-# cut by the time limit resume from their last checkpoint.
+# (default 480) with GPU_PARALLEL runs at once (default 4: one grid run's batches are far too
+# small to fill the GPU; each run's host side gets its own share of the machine's cores, and
+# JAX's preallocation is off so that the runs share the GPU's memory), then writes
+# OUT/RUN.tar.gz for each run directory it touched (at most 7, the rest of the 8 files a call
+# brings back is OUT/slice.log). Unpack the archives into the CPU grid's directory
+# (`tar -xzf RUN.tar.gz -C DIR/runs`): complete runs are reused there, runs cut by the time
+# limit resume from their last checkpoint.
 set -uo pipefail
 out=${1:?usage: gpu_grid_slice.sh OUT PATTERN...}
 shift
@@ -20,8 +23,9 @@ exec > >(tee "$out/slice.log") 2>&1
 # shellcheck source=benchmarks/gpu_env.sh
 source benchmarks/gpu_env.sh || exit 1
 start=$(date +%s)
+export XLA_PYTHON_CLIENT_PREALLOCATE=false
 timeout "$limit" "$PY" -m cmat experiment experiments/smax_benchmark.yaml --out "$out/grid" \
-  --parallel 1 --only "$@"
+  --parallel "${GPU_PARALLEL:-4}" --only "$@"
 code=$?
 echo "experiment exit code $code after $(( $(date +%s) - start )) s (124: the time limit)"
 count=0
