@@ -21,8 +21,9 @@ chunks (each point's chunk times resampled, the median refitted; `--repeats` ≥
 interval, one chunk per point gives the exponent alone): they measure timing noise, not how
 well a power law fits.
 
-Writes DIR/agent_scaling.png, DIR/agent_scaling.md and DIR/agent_scaling.json (the points)
-and prints the table and exponents. `--merge` adds the points of earlier runs' JSON files (this
+Writes DIR/agent_scaling.json (the points, after each one, so that a run cut short keeps what
+it measured), then DIR/agent_scaling.png and DIR/agent_scaling.md, and prints the table and
+exponents. `--merge` adds the points of earlier runs' JSON files (this
 run's points replace theirs), so one table can gather points that took several sessions (at
 the same --envs/--rollout/--updates); the table names the run (output directory name) each
 row's points came from. `--teams` with no names measures nothing and only redraws the merged
@@ -127,7 +128,7 @@ def main() -> None:
             shown = point if isinstance(point, str) else (
                 f"n={point['n']:.0f} {point['sps']:.0f} steps/s {memory_mb(point):.0f} MB")
             print(f"{team:12} {line:10} {shown}", flush=True)
-    (args.out / "agent_scaling.json").write_text(json.dumps(results, indent=1))
+            (args.out / "agent_scaling.json").write_text(json.dumps(results, indent=1))
     write(results, args)
 
 
