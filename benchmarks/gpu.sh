@@ -15,8 +15,8 @@
 #       (`ppo.minibatch_chunks`: the same gradient in less memory), MAPPO whole;
 #   throughput_27m_vs_30m          the same three on 27m_vs_30m at 1,024 environments;
 #   scaling                        CMAT and MAT agent-scaling points, 3m, 27m_vs_30m, 100m, at 256
-#       environments (benchmarks/agent_scaling.py; its table, PNG and JSON in OUT/scaling/ if
-#       the step ends in time);
+#       environments (benchmarks/agent_scaling.py; in OUT/scaling/ its JSON after each point,
+#       its table and PNG if the step ends in time);
 #   throughput_3s5z_vs_3s6z_small  3s5z_vs_3s6z at 1,024 environments;
 #   tests                          the fast core of the test suite on the GPU (the network's
 #       properties: agent permutation, action masks, attention; chunked gradients).
