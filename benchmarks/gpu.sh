@@ -18,8 +18,9 @@
 #       environments (benchmarks/agent_scaling.py; in OUT/scaling/ its JSON after each point,
 #       its table and PNG if the step ends in time);
 #   throughput_3s5z_vs_3s6z_small  3s5z_vs_3s6z at 1,024 environments;
-#   tests                          the fast core of the test suite on the GPU (the network's
-#       properties: agent permutation, action masks, attention; chunked gradients).
+#   tests                          the core properties on the GPU (each test compiles its own
+#       programs, 15-20 s apiece there): agent permutation, action masks, chunked gradients,
+#       the paper's loss with the joint ratio.
 # A full pass takes about 20 minutes on one H200 (2026-12-04: each throughput process spent
 # 20-85 s compiling; the scaling step finished one point in 120 s), more than one call:
 # GPU_STEPS="NAME ..." runs the named steps alone, in the order above, e.g.
@@ -79,7 +80,10 @@ selected scaling && step scaling 360 "$PY" benchmarks/agent_scaling.py --out "$o
   --teams "${teams[@]}" --envs "$scaling_envs" --updates 1 --lines cmat mat
 selected throughput_3s5z_vs_3s6z_small && step throughput_3s5z_vs_3s6z_small 150 \
   compare 3s5z_vs_3s6z "$small" cmat mat mappo
-selected tests && step tests 150 "$PY" -m pytest -q -o addopts= -m "not slow" \
-  -p no:cacheprovider tests/test_network.py tests/test_minibatch_chunks.py
+selected tests && step tests 150 "$PY" -m pytest -q -o addopts= -p no:cacheprovider \
+  tests/test_network.py::test_permuting_agents_permutes_policies_and_keeps_value_and_consensus \
+  tests/test_network.py::test_masked_actions_have_zero_probability_and_are_never_sampled \
+  tests/test_minibatch_chunks.py::test_chunked_minibatch_gives_the_same_loss_and_gradient \
+  tests/test_cmat_options.py::test_paper_options_give_the_papers_loss
 echo "== done after $(( $(date +%s) - start )) s"
 ls -la "$out"

@@ -27,6 +27,7 @@ ITERATION_RULES = {"n": (1, 1), "n/2": (1, 2), "2n": (2, 1)}
 FINETUNE_MODES = ("consensus", "action")
 JOINT_CLIPS = ("joint", "per_agent")
 ENTROPY_REDUCTIONS = ("mean", "sum")
+LOSS_ORDERS = ("sampled", "index")
 LOGGERS = ("tensorboard", "wandb")
 NONFINITE_POLICIES = ("error", "warn")
 """What a host environment does with a NaN or infinite observation, reward or state
@@ -172,6 +173,10 @@ class PPOConfig:
     """Stochastic consensus only: weight of the consensus policy's entropy bonus."""
     order_loss_coef: float = 1.0
     """PMAT only: weight of the clipped PPO term on the sampled agent order's log-probability."""
+    order_in_loss: str = "sampled"
+    """PMAT only: the decision order its loss decodes the stored actions along: 'sampled' (the
+    order acting sampled them in, the paper's reading) or 'index' (the agents' index order, as
+    the reference's training pass does)."""
 
 
 @dataclass(frozen=True)
@@ -322,6 +327,8 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"be divisible by ppo.minibatch_chunks ({ppo.minibatch_chunks})"),
         (ppo.joint_clip in JOINT_CLIPS,
          f"ppo.joint_clip must be one of {', '.join(JOINT_CLIPS)}, got {ppo.joint_clip!r}"),
+        (ppo.order_in_loss in LOSS_ORDERS,
+         f"ppo.order_in_loss must be one of {', '.join(LOSS_ORDERS)}, got {ppo.order_in_loss!r}"),
         (ppo.entropy_reduction in ENTROPY_REDUCTIONS,
          f"ppo.entropy_reduction must be one of {', '.join(ENTROPY_REDUCTIONS)}, "
          f"got {ppo.entropy_reduction!r}"),

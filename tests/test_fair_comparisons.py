@@ -85,6 +85,20 @@ def test_mat_regresses_dead_agents_values_as_its_smac_script(algo: str) -> None:
     assert config.ppo.active_masks and config.ppo.value_active_masks is False
 
 
+def test_pmat_trains_as_its_smac_script() -> None:
+    """NUDT-BI-MARL/PMAT `train_smac.sh` passes `--ranking_loss_coef 1e-4`, and its training
+    pass decodes the stored actions in index order; the option is PMAT's alone."""
+    from cmat.errors import CmatError
+
+    config = load_config(overrides=["algo=pmat", "env=smax:3m"])
+    assert (config.ppo.order_loss_coef, config.ppo.order_in_loss) == (1e-4, "index")
+    assert load_config(overrides=["algo=mat"]).ppo.order_in_loss == "sampled"
+    with pytest.raises(CmatError, match=r"ppo\.order_in_loss=index applies to the sampled-order"):
+        load_config(overrides=["algo=mat", "ppo.order_in_loss=index"])
+    with pytest.raises(CmatError, match=r"ppo\.order_in_loss must be one of sampled, index"):
+        load_config(overrides=["algo=pmat", "ppo.order_in_loss=random"])
+
+
 def test_a_run_that_masked_mats_value_loss_is_not_reused() -> None:
     """A config written before `ppo.value_active_masks` existed (read as None: as active_masks)
     is not the reference MAT's, so an experiment redoes its run."""
@@ -321,7 +335,9 @@ def perturb_dead_agent(batch: Batch, per_agent: bool) -> Batch:
 def test_active_masks_remove_a_dead_agent_from_every_mean(algo: str) -> None:
     """Policy loss and entropy leave a dead agent out; so does the value loss with
     `ppo.value_active_masks` (MAT's per-agent values; the reference SMAC script regresses dead
-    agents' values too, tested below; MAPPO's team value has no agent to leave out)."""
+    agents' values too, tested below; MAPPO's team value has no agent to leave out). PMAT's
+    order term averages every agent's advantage, as its reference does (tests/test_mat.py), so
+    the comparison of totals leaves that term out."""
     ppo = load_config(overrides=[f"algo={algo}"]).ppo
     assert ppo.active_masks
     ppo = dataclasses.replace(ppo, value_active_masks=True)
@@ -331,7 +347,12 @@ def test_active_masks_remove_a_dead_agent_from_every_mean(algo: str) -> None:
     loss = jax.jit(algorithm.loss, static_argnums=2)
     base, metrics = loss(params, batch, ppo)
     changed, changed_metrics = loss(params, perturb_dead_agent(batch, ppo.per_agent_gae), ppo)
-    assert float(changed) == pytest.approx(float(base), rel=1e-5, abs=1e-6)
+
+    def without_order_term(total: jax.Array, metrics: dict[str, jax.Array]) -> float:
+        return float(total) - ppo.order_loss_coef * float(metrics.get("order_loss", 0.0))
+
+    assert without_order_term(changed, changed_metrics) == pytest.approx(
+        without_order_term(base, metrics), rel=1e-5, abs=1e-6)
     for name in ("policy_loss", "entropy", "value_loss"):
         assert float(changed_metrics[name]) == pytest.approx(float(metrics[name]), abs=1e-6)
     if ppo.per_agent_gae:

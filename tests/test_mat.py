@@ -159,6 +159,49 @@ def test_pmat_scores_actions_along_the_sampled_order(pmat_team: Team) -> None:
     assert np.take_along_axis(np.asarray(batch.action_mask), greedy[..., None], -1).all()
 
 
+def test_pmat_index_order_loss_decodes_as_the_reference_training_pass(pmat_team: Team) -> None:
+    """`ppo.order_in_loss=index` (PMAT's reference default) decodes the stored actions in index
+    order, as the reference's `forward` does: at the collecting parameters its log-ratios are
+    index-order teacher forcing against the log-probs acting had along the sampled order."""
+    algorithm, params, batch = pmat_team
+    identity = jnp.broadcast_to(jnp.arange(AGENTS), batch.extras.order.shape)
+    log_ratio = teacher_forced_log_probs(pmat_team, identity) - batch.log_probs
+    expected_kl = float(jnp.mean(jnp.expm1(log_ratio) - log_ratio))
+    _, metrics = jitted(algorithm.loss, (2,))(params, batch, PPOConfig(order_in_loss="index"))
+    assert expected_kl > 1e-3
+    assert float(metrics["approx_kl"]) == pytest.approx(expected_kl, rel=1e-4)
+    assert float(metrics["order_approx_kl"]) == pytest.approx(0.0, abs=1e-7)
+
+
+def test_pmat_order_weights_are_the_references_bounded_weights(pmat_team: Team) -> None:
+    """The reference's scoring block: LayerNorm, two GELU layers of 64 each followed by a
+    LayerNorm, one output squashed to a weight in (1, 10)."""
+    algorithm, params, batch = pmat_team
+    _, _, log_weights = jax.vmap(jitted(algorithm.scores), in_axes=(None, 0))(params, batch.obs)
+    weights = np.exp(np.asarray(log_weights))
+    assert weights.min() > 1.0 and weights.max() < 10.0 and weights.std() > 0.1
+    scorer = params["scorer"]["params"]
+    kernels = sorted(layer["kernel"].shape for layer in scorer.values() if "kernel" in layer)
+    assert kernels == [(16, 64), (64, 1), (64, 64)]
+    assert sum("scale" in layer for layer in scorer.values()) == 3
+
+
+def test_pmat_order_term_averages_every_agents_advantage(pmat_team: Team) -> None:
+    """With per-agent advantages, the order term's advantage is their mean over every agent,
+    dead ones too (reference `mat_trainer.py`: `adv_targ.view(-1, n).mean(dim=1)`), while the
+    policy loss leaves the dead out."""
+    algorithm, params, batch = pmat_team
+    advantage_key, alive_key = jax.random.split(jax.random.PRNGKey(5))
+    advantages = jax.random.normal(advantage_key, (TEAMS, AGENTS)) + 1.0
+    alive = jax.random.bernoulli(alive_key, 0.6, (TEAMS, AGENTS)).at[:, 0].set(True)
+    per_agent = batch._replace(advantages=advantages, alive=alive,
+                               targets=jnp.broadcast_to(batch.targets[:, None], alive.shape))
+    _, metrics = jitted(algorithm.loss, (2,))(params, per_agent, PPOConfig(active_masks=True))
+    assert float(metrics["order_loss"]) == pytest.approx(-float(jnp.mean(advantages)), abs=1e-5)
+    masked = float(jnp.sum(advantages * alive) / jnp.sum(alive))
+    assert float(metrics["policy_loss"]) == pytest.approx(-masked, abs=1e-5)
+
+
 def joint_distribution(log_probs: Callable[[jax.Array], jax.Array]) -> np.ndarray:
     """P(a_0, .., a_{n-1}) over all joint actions, from per-agent log-probs of joint actions."""
     joint = jnp.array(list(itertools.product(range(ACTIONS), repeat=AGENTS)))

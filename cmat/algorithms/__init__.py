@@ -52,6 +52,7 @@ OPTION_CAPABILITIES = {
     "ppo.per_agent_gae": ("per_agent_values", False),
     "network.recurrent": ("recurrent", False),
     "ppo.minibatch_chunks": ("minibatch_chunks", 1),
+    "ppo.order_in_loss": ("sampled_order", "sampled"),
 }
 """Options only some algorithms have: field -> (the capability it needs, the value every
 algorithm accepts)."""

@@ -97,7 +97,8 @@ class Algorithm(Protocol):
 
     capabilities: ClassVar[frozenset[str]]
     """What the algorithm has of `cmat.algorithms.OPTION_CAPABILITIES`: 'consensus',
-    'joint_ratio', 'per_agent_values'; the options that need one are rejected without it."""
+    'joint_ratio', 'per_agent_values', 'recurrent', 'minibatch_chunks',
+    'sampled_order'; the options that need one are rejected without it."""
 
     reference_defaults: ClassVar[dict[str, Any]]
     """Config values of the algorithm's reference implementation where they differ from the

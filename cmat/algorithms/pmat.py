@@ -1,11 +1,15 @@
 """PMAT (Hu et al. 2025): MAT whose decision order is sampled from a learned Plackett-Luce model.
 
-A scoring MLP on Ô gives one score s_i per agent; the order σ is drawn without replacement,
-P(σ) = Π_k exp(s_σ(k)) / Σ_{j≥k} exp(s_σ(j)), and MAT's decoder acts along it. The order is
-stored with the transition, so training scores the actions along the order they were sampled
-in; log P(σ) gets its own clipped PPO term with the team advantage (with per-agent GAE: the
-mean advantage of the active agents), weighted by `ppo.order_loss_coef`, added to MAT's loss
-(eq. mat). Values, GAE and active masks are MAT's.
+A scoring block on Ô gives each agent a weight w_i in (1, 10) (`OrderScorer`); the order σ is
+drawn without replacement, P(σ) = Π_k w_σ(k) / Σ_{j≥k} w_σ(j), and MAT's decoder acts along it.
+The order is stored with the transition; log P(σ) gets its own clipped PPO term with the team
+advantage (with per-agent GAE: the mean advantage over every agent, as the reference's
+`mat_trainer.py`), weighted by `ppo.order_loss_coef`, added to MAT's loss (eq. mat). The loss
+decodes the stored actions along `ppo.order_in_loss`: the sampled order, or the agents' index
+order as the reference's training pass does. Values, GAE and active masks are MAT's.
+
+Reference: NUDT-BI-MARL/PMAT (8894f9e), `mat/algorithms/mat/algorithm/pma_transformer.py`,
+`mat/algorithms/mat/mat_trainer.py`, `mat/scripts/train_smac.sh`.
 """
 
 from __future__ import annotations
@@ -16,9 +20,9 @@ from typing import Any, ClassVar, NamedTuple, cast
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params, active_mask
+from cmat.algorithms.base import ActResult, Batch, Params
 from cmat.algorithms.mat import MAT
-from cmat.algorithms.ppo import clipped_surrogate_loss, masked_mean
+from cmat.algorithms.ppo import clipped_surrogate_loss
 from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -38,14 +42,15 @@ class OrderSample(NamedTuple):
 
 
 def order_log_prob(scores: jax.Array, order: jax.Array) -> jax.Array:
-    """log P(σ) = Σ_k [s_σ(k) − logsumexp(s_σ(k..n))] over the last axis."""
+    """log P(σ) = Σ_k [s_σ(k) − logsumexp(s_σ(k..n))] over the last axis, for log-weights s."""
     ordered = jnp.take_along_axis(scores, order, axis=-1)
     remaining = jax.lax.cumlogsumexp(ordered, axis=ordered.ndim - 1, reverse=True)
     return jnp.sum(ordered - remaining, axis=-1)
 
 
 def sample_order(scores: jax.Array, key: jax.Array) -> jax.Array:
-    """A Plackett-Luce order, exactly, by Gumbel-top-k: sort s_i + Gumbel noise, descending."""
+    """A Plackett-Luce order for log-weights s, exactly, by Gumbel-top-k: sort s_i + Gumbel
+    noise, descending."""
     return jnp.argsort(-(scores + jax.random.gumbel(key, scores.shape)), axis=-1)
 
 
@@ -55,12 +60,20 @@ class PMAT(PPOAlgorithm):
     scorer: OrderScorer
 
     name: ClassVar[str] = "pmat"
-    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values", "minibatch_chunks"})
+    capabilities: ClassVar[frozenset[str]] = frozenset(
+        {"per_agent_values", "minibatch_chunks", "sampled_order"}
+    )
     network_fields: ClassVar[tuple[str, ...]] = MAT.network_fields
-    """MAT's; the order scorer has MAT's width `n_embd` and gain `init_gain`."""
+    """MAT's; the order scorer's output layer has gain `init_gain`, its hidden layers the
+    reference's fixed 2 × 64."""
 
-    reference_defaults: ClassVar[dict[str, Any]] = MAT.reference_defaults
-    """PMAT is built on the reference MAT code and trains as it does."""
+    reference_defaults: ClassVar[dict[str, Any]] = {
+        "ppo": {**MAT.reference_defaults["ppo"], "order_loss_coef": 1e-4, "order_in_loss": "index"},
+    }
+    """PMAT is built on the reference MAT code and trains as it does, with the reference SMAC
+    script's `--ranking_loss_coef 1e-4` and its training pass's decision order: `forward` in
+    `pma_transformer.py` decodes the stored actions with `discrete_parallel_act` on the encoder
+    output in index order (acting reindexed it along the sampled order)."""
     presets: ClassVar[dict[str, dict[str, Any]]] = MAT.presets
     ynnpack_matmuls: ClassVar[bool] = True
 
@@ -68,7 +81,7 @@ class PMAT(PPOAlgorithm):
     def build(
         cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
     ) -> PMAT:
-        return cls(MAT.build(config, spec, ppo), OrderScorer(config.n_embd, config.init_gain))
+        return cls(MAT.build(config, spec, ppo), OrderScorer(config.init_gain))
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         mat_key, scorer_key = jax.random.split(key)
@@ -108,19 +121,19 @@ class PMAT(PPOAlgorithm):
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
-        """MAT's loss along the sampled orders plus the clipped order term."""
+        """MAT's loss along `ppo.order_in_loss` plus the clipped order term."""
         sampled: OrderSample = batch.extras
+        orders = (
+            sampled.order if ppo.order_in_loss == "sampled"
+            else jnp.broadcast_to(self.mat.identity, sampled.order.shape)
+        )
         total, metrics, output = self.mat.loss_along(
-            params["mat"], batch, sampled.order, sampled.agent_values, ppo
+            params["mat"], batch, orders, sampled.agent_values, ppo
         )
         scores = cast(jax.Array, self.scorer.apply(params["scorer"], output.encoded))
         advantages = batch.advantages
         if advantages.ndim == 2:
-            mask = active_mask(batch, ppo)
-            advantages = (
-                jnp.mean(advantages, axis=1) if mask is None
-                else jax.vmap(masked_mean)(advantages, mask)
-            )
+            advantages = jnp.mean(advantages, axis=1)
         order_loss, diagnostics = clipped_surrogate_loss(
             order_log_prob(scores, sampled.order) - sampled.log_prob, advantages, ppo.clip_eps
         )

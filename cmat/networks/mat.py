@@ -114,14 +114,27 @@ class AgentValueHead(nn.Module):
 
 
 class OrderScorer(nn.Module):
-    """PMAT's scoring MLP: one Plackett-Luce score per agent from ô_i (Hu et al. 2025)."""
+    """PMAT's scoring block (Hu et al. 2025; reference `ScoringBlock`, NUDT-BI-MARL/PMAT
+    `mat/algorithms/mat/algorithm/pma_transformer.py`, 8894f9e): LayerNorm, then `layers` ×
+    (Dense(`hidden`, gain √2), GELU, LayerNorm), then Dense(1, `init_gain`) squashed to a weight
+    w = 9·sigmoid + 1 in (1, 10); the order's probability is Π_k w_σ(k) / Σ_{j≥k} w_σ(j).
 
-    n_embd: int
+    encoded [..., n, d] -> log w [..., n], each agent's Plackett-Luce log-weight in (0, log 10).
+    """
+
     init_gain: float
+    hidden: int = 64
+    """The reference's `hid_dim`, whatever the transformer's width."""
+    layers: int = 2
+    """The reference SMAC script's `--rank_layer_N`."""
 
     @nn.compact
     def __call__(self, encoded: jax.Array) -> jax.Array:
-        return dense(1, self.init_gain)(nn.gelu(dense(self.n_embd)(encoded)))[..., 0]
+        x = nn.LayerNorm()(encoded)
+        for _ in range(self.layers):
+            x = nn.LayerNorm()(nn.gelu(dense(self.hidden)(x)))
+        weight = 9.0 * nn.sigmoid(dense(1, self.init_gain)(x)[..., 0]) + 1.0
+        return jnp.log(weight)
 
 
 class MATNetwork(nn.Module):
