@@ -56,3 +56,22 @@ def test_an_old_run_evaluates_and_resumes(name: str, tmp_path: Path) -> None:
     assert RunDir.open(run).load_checkpoint()[1] == 800
     evals = [row for row in RunDir.open(run).read_metrics() if row["kind"] == "eval"]
     assert {int(row["env_steps"]) for row in evals} == {400, 800}
+
+
+def test_a_checkpoint_of_another_network_is_reported_where_it_first_differs() -> None:
+    from cmat.runners.base import state_difference
+
+    expected = {"a": {"w": jax.ShapeDtypeStruct((2, 3), np.float32)}, "b": None}
+
+    def found(a: dict) -> dict:
+        return {"a": a, "b": None}
+
+    assert state_difference(expected, found({"w": np.zeros((2, 3))}), "state") is None
+    assert (state_difference(expected, found({"w": np.zeros((3, 3))}), "state")
+            == "state/a/w is (3, 3) in the checkpoint, (2, 3) for this config")
+    assert state_difference(expected, found({}), "state") == "state/a/w is not in the checkpoint"
+    assert (state_difference(expected, found({"w": np.zeros((2, 3)), "bias": np.zeros(3)}),
+                             "state")
+            == "the checkpoint has state/a/bias, which this config's state lacks")
+    assert (state_difference(expected, found({"w": {"kernel": np.zeros(2)}}), "state")
+            == "state/a/w has another structure in the checkpoint")

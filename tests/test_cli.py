@@ -434,7 +434,8 @@ def test_console_script(trained: Path) -> None:
 @pytest.mark.parametrize(("edit", "reason"), [
     (("num_envs: 4", "num_envs: 8"), "shapes differ"),
     (("rollout_length: 25", "rollout_length: 50"), "would count as 4,000"),
-    (("n_embd: 64", "n_embd: 32"), "shapes differ"),
+    (("n_embd: 64", "n_embd: 32"), "shapes differ: state/"),
+    (("n_block: 1", "n_block: 2"), "state differs: state/"),
 ])
 def test_a_config_edited_against_its_checkpoint_is_reported_and_changes_nothing(
     run_copy: Path, tmp_path: Path, edit: tuple[str, str], reason: str,

@@ -107,6 +107,30 @@ def fill_added_timestep_fields(raw: dict[str, Any], template: EnvsState) -> None
             raw["timestep"][name] = np.full(shape.shape, value, shape.dtype)
 
 
+def state_difference(expected: Any, found: Any, path: str) -> str | None:
+    """Where a checkpoint's state dict (`found`) first departs from the one this config builds
+    (`expected`; nested dicts whose leaves have shapes): a key on one side only, or a leaf of
+    another shape, said of the checkpoint; None where they agree."""
+    if isinstance(expected, dict) and isinstance(found, dict):
+        for key in expected:
+            if key not in found:
+                return f"{path}/{key} is not in the checkpoint"
+            difference = state_difference(expected[key], found[key], f"{path}/{key}")
+            if difference is not None:
+                return difference
+        extra = next((key for key in found if key not in expected), None)
+        return None if extra is None else (
+            f"the checkpoint has {path}/{extra}, which this config's state lacks")
+    if isinstance(expected, dict) or isinstance(found, dict) or expected is None or found is None:
+        return None if expected is None and found is None else (
+            f"{path} has another structure in the checkpoint")
+    shape = tuple(getattr(found, "shape", np.shape(found)))
+    expected_shape = tuple(getattr(expected, "shape", np.shape(expected)))
+    if shape != expected_shape:
+        return f"{path} is {shape} in the checkpoint, {expected_shape} for this config"
+    return None
+
+
 def restore_state(
     learner: LearnerState, envs: EnvsState | None, seeds: int, data: bytes
 ) -> TrainerState:
@@ -120,6 +144,12 @@ def restore_state(
         if not isinstance(raw, dict):
             raise TypeError("not a map")
         learner_fields = flax.serialization.to_state_dict(template.learner)
+        difference = state_difference(
+            learner_fields, {name: raw[name] for name in learner_fields if name in raw}, "state"
+        )
+        if difference is not None:
+            kind = "shapes differ" if difference.endswith("for this config") else "state differs"
+            raise CmatError(f"checkpoint does not match this run's config ({kind}: {difference})")
         restored_learner = flax.serialization.from_state_dict(
             template.learner, {name: raw[name] for name in learner_fields})
         restored_envs = None
@@ -129,6 +159,8 @@ def restore_state(
             fill_added_timestep_fields(env_fields, template.envs)
             restored_envs = flax.serialization.from_state_dict(template.envs, env_fields)
         restored = TrainerState(restored_learner, restored_envs)
+    except CmatError:
+        raise
     except Exception as error:  # msgpack and flax raise many types for bad bytes
         raise CmatError(f"corrupt or incompatible checkpoint ({type(error).__name__})") from None
     expected = jax.tree.map(lambda x: (x.shape, x.dtype), template)
