@@ -68,10 +68,11 @@ def test_a_checkpoint_of_another_network_is_reported_where_it_first_differs() ->
 
     assert state_difference(expected, found({"w": np.zeros((2, 3))}), "state") is None
     assert (state_difference(expected, found({"w": np.zeros((3, 3))}), "state")
-            == "state/a/w is (3, 3) in the checkpoint, (2, 3) for this config")
-    assert state_difference(expected, found({}), "state") == "state/a/w is not in the checkpoint"
+            == "shapes differ: state/a/w is (3, 3) in the checkpoint, (2, 3) for this config")
+    assert (state_difference(expected, found({}), "state")
+            == "state differs: state/a/w is not in the checkpoint")
     assert (state_difference(expected, found({"w": np.zeros((2, 3)), "bias": np.zeros(3)}),
                              "state")
-            == "the checkpoint has state/a/bias, which this config's state lacks")
+            == "state differs: the checkpoint has state/a/bias, which this config's state lacks")
     assert (state_difference(expected, found({"w": {"kernel": np.zeros(2)}}), "state")
-            == "state/a/w has another structure in the checkpoint")
+            == "state differs: state/a/w has another structure in the checkpoint")

@@ -110,24 +110,25 @@ def fill_added_timestep_fields(raw: dict[str, Any], template: EnvsState) -> None
 def state_difference(expected: Any, found: Any, path: str) -> str | None:
     """Where a checkpoint's state dict (`found`) first departs from the one this config builds
     (`expected`; nested dicts whose leaves have shapes): a key on one side only, or a leaf of
-    another shape, said of the checkpoint; None where they agree."""
+    another shape ('shapes differ: ...'), said of the checkpoint; None where they agree."""
     if isinstance(expected, dict) and isinstance(found, dict):
         for key in expected:
             if key not in found:
-                return f"{path}/{key} is not in the checkpoint"
+                return f"state differs: {path}/{key} is not in the checkpoint"
             difference = state_difference(expected[key], found[key], f"{path}/{key}")
             if difference is not None:
                 return difference
         extra = next((key for key in found if key not in expected), None)
         return None if extra is None else (
-            f"the checkpoint has {path}/{extra}, which this config's state lacks")
+            f"state differs: the checkpoint has {path}/{extra}, which this config's state lacks")
     if isinstance(expected, dict) or isinstance(found, dict) or expected is None or found is None:
         return None if expected is None and found is None else (
-            f"{path} has another structure in the checkpoint")
+            f"state differs: {path} has another structure in the checkpoint")
     shape = tuple(getattr(found, "shape", np.shape(found)))
     expected_shape = tuple(getattr(expected, "shape", np.shape(expected)))
     if shape != expected_shape:
-        return f"{path} is {shape} in the checkpoint, {expected_shape} for this config"
+        return (f"shapes differ: {path} is {shape} in the checkpoint, {expected_shape} for this "
+                "config")
     return None
 
 
@@ -148,8 +149,7 @@ def restore_state(
             learner_fields, {name: raw[name] for name in learner_fields if name in raw}, "state"
         )
         if difference is not None:
-            kind = "shapes differ" if difference.endswith("for this config") else "state differs"
-            raise CmatError(f"checkpoint does not match this run's config ({kind}: {difference})")
+            raise CmatError(f"checkpoint does not match this run's config ({difference})")
         restored_learner = flax.serialization.from_state_dict(
             template.learner, {name: raw[name] for name in learner_fields})
         restored_envs = None
