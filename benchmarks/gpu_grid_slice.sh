@@ -5,7 +5,9 @@
 # Prepare here: `bash scripts/gpu_wheels.sh` (cmat's dependencies the GPU image lacks, into
 # .whl/). There, in the repository root, with .whl carried:
 #   bash benchmarks/gpu_grid_slice.sh OUT 'smax_2s3z/default/pmat-*' 'smax_2s3z/default/happo-*'
-# It runs `cmat experiment ... --only PATTERN...` into OUT/grid for at most GPU_SLICE_SECONDS
+# It runs `cmat experiment ... --only PATTERN...` into GPU_GRID_DIR (default OUT/grid; give a
+# folder outside OUT, such as .gpu_grid, and a second call on the same warm machine resumes
+# the first call's runs and reuses its compilation cache) for at most GPU_SLICE_SECONDS
 # (default 480) with GPU_PARALLEL runs at once (default 4: one grid run's batches are far too
 # small to fill the GPU; each run's host side gets its own share of the machine's cores, and
 # JAX's preallocation is off so that the runs share the GPU's memory), then writes
@@ -23,17 +25,18 @@ exec > >(tee "$out/slice.log") 2>&1
 # shellcheck source=benchmarks/gpu_env.sh
 source benchmarks/gpu_env.sh || exit 1
 start=$(date +%s)
+grid=${GPU_GRID_DIR:-$out/grid}
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
-timeout "$limit" "$PY" -m cmat experiment experiments/smax_benchmark.yaml --out "$out/grid" \
+timeout "$limit" "$PY" -m cmat experiment experiments/smax_benchmark.yaml --out "$grid" \
   --parallel "${GPU_PARALLEL:-4}" --only "$@"
 code=$?
 echo "experiment exit code $code after $(( $(date +%s) - start )) s (124: the time limit)"
 count=0
-for run in "$out"/grid/runs/*/*/*/; do
+for run in "$grid"/runs/*/*/*/; do
   [ -f "$run/config.yaml" ] || continue
-  name=$(echo "${run#"$out"/grid/runs/}" | sed 's:/$::; s:/:__:g')
+  name=$(echo "${run#"$grid"/runs/}" | sed 's:/$::; s:/:__:g')
   if [ $count -ge 7 ]; then echo "not archived (8 files come back at most): $name"; continue; fi
-  tar -czf "$out/$name.tar.gz" -C "$out/grid/runs" "${run#"$out"/grid/runs/}"
+  tar -czf "$out/$name.tar.gz" -C "$grid/runs" "${run#"$grid"/runs/}"
   count=$((count + 1))
 done
 ls -la "$out"
