@@ -45,6 +45,7 @@ from cmat.algorithms import check_config
 from cmat.config import (
     ConfigSources,
     TrainConfig,
+    field_names,
     from_yaml,
     read_sources,
     to_yaml,
@@ -223,11 +224,17 @@ class RunDir:
 
     def resumed_sources(self, config: TrainConfig) -> ConfigSources | None:
         """The sources of config.yaml for `config`, the run's config with a budget `cmat train
-        --resume --steps` may have changed (None for a run that did not record them)."""
+        --resume --steps` may have changed (None for a run that did not record them). A field
+        that the run's config.yaml lacks (one cmat added after the run began) took its default
+        and is marked so."""
         sources = self.sources()
-        if sources and self.config().total_steps != config.total_steps:
+        if not sources:
+            return None
+        for name in field_names():
+            sources.setdefault(name, "default (not in this run's earlier config.yaml)")
+        if self.config().total_steps != config.total_steps:
             sources["total_steps"] = "command line (--resume --steps)"
-        return sources or None
+        return sources
 
     def write_config(self, config: TrainConfig, sources: ConfigSources | None = None) -> None:
         atomic_write(self.config_path, to_yaml(config, sources).encode())

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from matplotlib.image import imread
 
 from cmat import plots
 from cmat.cli import main
-from cmat.config import TrainConfig
+from cmat.config import TrainConfig, field_names
 from cmat.errors import CmatError
 from cmat.plots import plot_runs, run_names
 from cmat.rundir import COLUMNS, RunDir, Session
@@ -40,6 +41,30 @@ def test_create_writes_config_that_reads_back(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path / "a" / "b", config)
     assert run.config() == config
     assert RunDir.open(run.path).config() == config
+
+
+@pytest.mark.parametrize("dropped", ["ppo.order_in_loss", "network.n_block", "eval_episodes"])
+def test_a_field_the_runs_config_lacks_is_marked_as_its_default_on_resume(
+    tmp_path: Path, dropped: str
+) -> None:
+    config = TrainConfig(env="smax:3m", total_steps=1000)
+    sources = {name: "default" for name in field_names()} | {"env": "command line"}
+    run = RunDir.create(tmp_path / "run", config, sources)
+    section, _, key = dropped.rpartition(".")
+    lines = run.config_path.read_text().splitlines(keepends=True)
+    kept = [line for line in lines if not line.startswith(f"{'  ' if section else ''}{key}:")]
+    assert len(kept) == len(lines) - 1
+    run.config_path.write_text("".join(kept))
+
+    resumed = run.resumed_sources(replace(config, total_steps=2000))
+
+    assert resumed is not None
+    assert resumed[dropped] == "default (not in this run's earlier config.yaml)"
+    assert resumed["env"] == "command line"
+    assert resumed["total_steps"] == "command line (--resume --steps)"
+    run.write_config(config, resumed)
+    assert run.sources()[dropped] == resumed[dropped]
+    assert run.config() == config
 
 
 @pytest.mark.parametrize(("existing", "message"), [
