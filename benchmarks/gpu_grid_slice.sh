@@ -8,11 +8,12 @@
 # It runs `cmat experiment ... --only PATTERN...` into GPU_GRID_DIR (default OUT/grid; give a
 # folder outside OUT, such as .gpu_grid, and a second call on the same warm machine resumes
 # the first call's runs and reuses its compilation cache) for at most GPU_SLICE_SECONDS
-# (default 480) with GPU_PARALLEL runs at once (default 4: one grid run's batches are far too
-# small to fill the GPU; each run's host side gets its own share of the machine's cores, and
-# JAX's preallocation is off so that the runs share the GPU's memory), then writes
-# OUT/RUN.tar.gz for each run directory it touched (at most 7, the rest of the 8 files a call
-# brings back is OUT/slice.log). Unpack the archives into the CPU grid's directory
+# (default 480) with GPU_PARALLEL runs at once (default 7, as many as one call brings back:
+# one grid run's batches are far too small to fill the GPU; each run's host side gets its own
+# share of the machine's cores, and JAX's preallocation is off so that the runs share the GPU's
+# memory; on an H200 the seven PMAT cells, 1M env steps each, finished together in 422 s), then
+# writes OUT/RUN.tar.gz for each run directory in the grid folder (at most 7, the rest of the 8
+# files a call brings back is OUT/slice.log). Unpack the archives into the CPU grid's directory
 # (`tar -xzf RUN.tar.gz -C DIR/runs`): complete runs are reused there, runs cut by the time
 # limit resume from their last checkpoint.
 set -uo pipefail
@@ -28,7 +29,7 @@ start=$(date +%s)
 grid=${GPU_GRID_DIR:-$out/grid}
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
 timeout "$limit" "$PY" -m cmat experiment experiments/smax_benchmark.yaml --out "$grid" \
-  --parallel "${GPU_PARALLEL:-4}" --only "$@"
+  --parallel "${GPU_PARALLEL:-7}" --only "$@"
 code=$?
 echo "experiment exit code $code after $(( $(date +%s) - start )) s (124: the time limit)"
 count=0

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Download, into .whl/, the wheels a GPU machine needs beyond what its image holds (Python 3.12
-# with JAX + CUDA, flax, optax, chex, numpy, scipy, matplotlib, pyyaml, tqdm already there):
-# cmat's remaining dependencies, at the versions this project is tested with. Run it here,
+# with JAX + CUDA, chex, numpy, scipy, matplotlib, pyyaml, tqdm already there): cmat's remaining
+# dependencies, and flax and optax at the versions pyproject.toml requires (the image's may be
+# older), at the versions this project is tested with. Run it here,
 # where PyPI is reachable; benchmarks/gpu_env.sh installs them there (pytest for gpu.sh's tests).
 #   bash scripts/gpu_wheels.sh
 set -euo pipefail
@@ -9,6 +10,7 @@ cd "$(dirname "$0")/.."
 grep -qx '/.whl/' .git/info/exclude 2>/dev/null || echo '/.whl/' >> .git/info/exclude
 PY=${PYTHON:-.venv/bin/python}
 wheels=(
+  flax==0.12.8 optax==0.2.8
   distrax==0.1.9 tfp-nightly==0.26.0.dev20261027 dm-tree==0.1.10 gast==0.7.0 decorator==5.3.1
   jaxmarl==0.2.0 gymnax==1.0.1 gymnasium==1.3.0 farama-notifications==0.0.6
   omegaconf==2.4.0 tensorboardX==2.6.5
