@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import fcntl
 import io
 import json
@@ -354,6 +355,26 @@ def test_partial_runs_start_first_and_stages_after_their_base(
     assert order[0] == mat and order.index(cmat) < order.index(stage)
     assert [name for name in order if name != mat] == [
         run.name for run in plan.runs if run.name != mat]
+
+
+@pytest.mark.parametrize("nearer", ["cmat", "mat"])
+def test_the_partial_run_nearest_its_budget_starts_first(
+    grid: tuple[Path, bytes, str], tmp_path: Path, nearer: str
+) -> None:
+    out = copy_grid(grid, tmp_path)
+    longer = tmp_path / "longer.yaml"
+    longer.write_text(yaml.safe_dump({**yaml.safe_load(SMOKE.read_text()), "steps": 2000}))
+    plan = make_plan(load_spec(longer), out)
+    partial = {run.algo: run for run in plan.runs if run.status == "resume"}
+    assert sorted(partial) == ["cmat", "mat"]
+    near = partial[nearer]
+    assert near.config is not None
+    near.config = dataclasses.replace(near.config, total_steps=1500)
+
+    order = [run.name for run in schedule(plan.runs)]
+
+    far = partial["mat" if nearer == "cmat" else "cmat"]
+    assert order[:2] == [near.name, far.name]
 
 
 def test_corrupt_and_partial_run_directories_are_reported_and_redone(

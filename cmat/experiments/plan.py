@@ -147,10 +147,17 @@ def retrain_exported_bases(runs: list[Run]) -> list[Run]:
 
 
 def schedule(runs: list[Run]) -> list[Run]:
-    """The runs to execute in the order to start them: partial runs first (nearest to
-    complete, and a grid continued from a carried export should finish what it carried before
-    starting anything new), then the others in grid order, every stage still after its base."""
-    return sorted(runs, key=lambda run: run.status != RESUME)
+    """The runs to execute in the order to start them: partial runs first, the one with the
+    fewest env steps per seed left to its budget first (a grid continued from a carried export
+    or a GPU slice finishes what it carried, nearest first, before starting anything new), then
+    the others in grid order, every stage still after its base."""
+
+    def remaining(run: Run) -> tuple[bool, int]:
+        if run.status != RESUME or run.config is None:
+            return True, 0
+        return False, run.config.budget_steps - RunDir(run.path).checkpoint_steps()[0]
+
+    return sorted(runs, key=remaining)
 
 
 def order_variants(variants: tuple[Variant, ...]) -> list[Variant]:
