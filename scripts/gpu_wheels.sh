@@ -1,9 +1,8 @@
 #!/usr/bin/env bash
 # Download, into .whl/, the wheels a GPU machine needs beyond what its image holds (Python 3.12
 # with JAX + CUDA, chex, numpy, scipy, matplotlib, pyyaml, tqdm already there): cmat's remaining
-# dependencies, and flax and optax at the versions pyproject.toml requires (the image's may be
-# older), at the versions this project is tested with. Run it here,
-# where PyPI is reachable; benchmarks/gpu_env.sh installs them there (pytest for gpu.sh's tests).
+# dependencies, flax and optax included (the image's may be older than pyproject.toml allows),
+# at the versions this project is tested with. Run it here, where PyPI is reachable; benchmarks/gpu_env.sh installs them there (pytest for gpu.sh's tests).
 #   bash scripts/gpu_wheels.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
