@@ -16,6 +16,11 @@
 # files a call brings back is OUT/slice.log). Unpack the archives into the CPU grid's directory
 # (`tar -xzf RUN.tar.gz -C DIR/runs`): complete runs are reused there, runs cut by the time
 # limit resume from their last checkpoint.
+# GPU_GRID_FROM=DIR (a grid's runs folder, such as the committed
+# experiments/results/smax_benchmark/runs) first copies the run directories there that match
+# the patterns and are not yet in the grid, so that runs carried with their checkpoints resume
+# on the GPU instead of starting over. Only run directories that changed since this grid last
+# archived them are archived, so a second call brings back what the first one could not.
 set -uo pipefail
 out=${1:?usage: gpu_grid_slice.sh OUT PATTERN...}
 shift
@@ -27,6 +32,19 @@ exec > >(tee "$out/slice.log") 2>&1
 source benchmarks/gpu_env.sh || exit 1
 start=$(date +%s)
 grid=${GPU_GRID_DIR:-$out/grid}
+mkdir -p "$grid/runs" "$grid/.archived"
+if [ -n "${GPU_GRID_FROM:-}" ]; then
+  for pattern in "$@"; do
+    for run in "$GPU_GRID_FROM"/$pattern; do
+      [ -f "$run/config.yaml" ] || continue
+      rel=${run#"$GPU_GRID_FROM"/}
+      [ -e "$grid/runs/$rel" ] && continue
+      mkdir -p "$grid/runs/$(dirname "$rel")" && cp -r "$run" "$grid/runs/$rel" || exit 1
+      touch "$grid/.archived/$(echo "$rel" | sed 's:/:__:g')"
+      echo "copied from $GPU_GRID_FROM: $rel"
+    done
+  done
+fi
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
 timeout "$limit" "$PY" -m cmat experiment experiments/smax_benchmark.yaml --out "$grid" \
   --parallel "${GPU_PARALLEL:-7}" --only "$@"
@@ -36,7 +54,10 @@ count=0
 for run in "$grid"/runs/*/*/*/; do
   [ -f "$run/config.yaml" ] || continue
   name=$(echo "${run#"$grid"/runs/}" | sed 's:/$::; s:/:__:g')
+  stamp=$grid/.archived/$name
+  if [ -e "$stamp" ] && [ -z "$(find "$run" -newer "$stamp" -print -quit)" ]; then continue; fi
   if [ $count -ge 7 ]; then echo "not archived (8 files come back at most): $name"; continue; fi
+  touch "$stamp"
   tar -czf "$out/$name.tar.gz" -C "$grid/runs" "${run#"$grid"/runs/}"
   count=$((count + 1))
 done
