@@ -2,7 +2,8 @@
 # Download, into .whl/, the wheels a GPU machine needs beyond what its image holds (Python 3.12
 # with JAX + CUDA, chex, numpy, scipy, matplotlib, pyyaml, tqdm already there): cmat's remaining
 # dependencies, flax and optax included (the image's may be older than pyproject.toml allows),
-# at the versions this project is tested with. Run it here, where PyPI is reachable; benchmarks/gpu_env.sh installs them there (pytest for gpu.sh's tests).
+# at the versions this project is tested with. Run it here, where PyPI is reachable;
+# benchmarks/gpu_env.sh installs them there (pytest for gpu.sh's tests).
 #   bash scripts/gpu_wheels.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
