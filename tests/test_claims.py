@@ -163,6 +163,22 @@ def test_swapping_the_lines_mirrors_the_probability(seed: int) -> None:
     assert forward.ci[0] <= forward.probability <= forward.ci[1]
 
 
+@pytest.mark.parametrize("runs", [3, 5, 8])
+def test_each_task_reports_both_lines_iqm_within_its_interval(runs: int) -> None:
+    rng = np.random.default_rng(runs)
+    scores = {task: {"X": list(rng.random(runs)), "Y": list(rng.random(runs + 1))}
+              for task in ("t1", "t2")}
+    comparison = compare("X", "Y", scores, 400)
+    assert comparison is not None
+    for task in comparison.per_task:
+        for label, point, ci in (("X", task.iqm_x, task.iqm_x_ci),
+                                 ("Y", task.iqm_y, task.iqm_y_ci)):
+            values = np.sort(scores[task.task][label])
+            cut = int(0.25 * len(values))  # scipy's trim_mean: the interquartile runs
+            assert point == pytest.approx(values[cut:len(values) - cut].mean())
+            assert min(values) <= ci[0] <= point <= ci[1] <= max(values)
+
+
 def test_the_claims_table_shows_every_claim_and_its_evidence(spec: ExperimentSpec) -> None:
     data = summary(full_grid())
     data["claims"] = judge_claims(data, spec)
@@ -171,7 +187,8 @@ def test_the_claims_table_shows_every_claim_and_its_evidence(spec: ExperimentSpe
     for key in "abcde":
         assert f"| ({key}) " in text
     assert "CMAT vs MAT: 1.00 [1.00, 1.00]" in text
-    assert "| (c) | CMAT | last | smax:3m | 1.00 [1.00, 1.00] | X |" in text
+    assert ("| (c) | CMAT | last | smax:3m | 1.00 [1.00, 1.00] | X | 0.950 [0.900, 1.000] | "
+            "0.200 [0.100, 0.300] |") in text
 
 
 def test_claims_are_judged_from_the_scores_named_and_both_verdicts_are_shown(

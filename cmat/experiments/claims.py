@@ -22,9 +22,9 @@ its mean evaluation over the spec's `score_window`). Evidence for "X beats Y": r
 probability of improvement P(X > Y) with a stratified
 bootstrap 95% percentile interval, on each task (seeds resampled) and aggregated over the tasks
 both lines ran (scores normalised as in `cmat.experiments.statistics.normalise`), beside the IQM
-of each line over those tasks. A comparison is decided when its interval excludes 0.5: X
-reliably better when the lower bound is above 0.5, Y reliably better when the upper bound is
-below it. Verdicts, from the per-task comparisons:
+of each line with its 95% interval, on each task and over those tasks. A comparison is decided
+when its interval excludes 0.5: X reliably better when the lower bound is above 0.5, Y reliably
+better when the upper bound is below it. Verdicts, from the per-task comparisons:
 
 - "supported": X is reliably better in every comparison the claim needs (for (d): no other m
   is reliably better on any task, and m = n is reliably better than some other m on some task);
@@ -87,6 +87,11 @@ class TaskComparison:
     outcome: str
     """'x' (X reliably better), 'y' (Y reliably better), 'tie' (interval contains 0.5) or
     'same' (every seed of both lines scored one value)."""
+    iqm_x: float
+    iqm_x_ci: list[float]
+    iqm_y: float
+    iqm_y_ci: list[float]
+    """Each line's IQM on the task with its 95% interval, from the same resamples as `ci`."""
 
 
 @dataclass(frozen=True)
@@ -144,8 +149,12 @@ def compare(x: str, y: str, scores: dict[str, dict[str, list[float]]], reps: int
     for task in tasks:
         xs, ys = (np.array(scores[task][label])[:, None] for label in (x, y))
         point = float(improvement_probability(xs, ys))
-        ci = interval(improvement_probability(bootstrap(xs, reps, rng), bootstrap(ys, reps, rng)))
-        per_task.append(TaskComparison(task, point, ci, outcome(ci, xs, ys)))
+        resampled_x, resampled_y = bootstrap(xs, reps, rng), bootstrap(ys, reps, rng)
+        ci = interval(improvement_probability(resampled_x, resampled_y))
+        per_task.append(TaskComparison(
+            task, point, ci, outcome(ci, xs, ys),
+            float(iqm(xs)), interval(iqm(resampled_x)), float(iqm(ys)), interval(iqm(resampled_y)),
+        ))
     runs = {label: min(len(scores[t][label]) for t in tasks) for label in (x, y)}
     matrix = {label: np.array([[scores[t][label][i] for t in tasks] for i in range(runs[label])])
               for label in (x, y)}

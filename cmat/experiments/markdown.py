@@ -182,7 +182,9 @@ def claims_section(summary: dict[str, Any], score: str, seeds: int) -> list[str]
             f"cmat.experiments.claims: "
             f"P(X > Y) is rliable's probability of improvement with a stratified bootstrap 95% "
             f"interval, per task and aggregated over the tasks both lines ran (returns min-max "
-            f"normalised per task). A comparison is decided when its interval excludes "
+            f"normalised per task), beside each line's IQM with its interval from the same "
+            f"resamples (with fewer than 4 seeds a task's IQM is their mean). "
+            f"A comparison is decided when its interval excludes "
             f"{SEPARATION}. Supported: X reliably better in every per-task comparison the claim "
             f"needs (for (d): no other m reliably better anywhere, and m = n reliably better "
             f"than some other m somewhere). Not supported: the other line reliably better in "
@@ -220,18 +222,24 @@ def claims_section(summary: dict[str, Any], score: str, seeds: int) -> list[str]
     rows = [(claim, c, t) for claim in claims for c in claim["comparisons"]
             for t in c["per_task"]]
     if rows:
-        out += ["", "| claim | X | Y | task | P(X > Y) [95% CI] | reliably better |",
-                "|---|---|---|---|---|---|"]
+        out += ["", "| claim | X | Y | task | P(X > Y) [95% CI] | reliably better | "
+                    "IQM of X [95% CI] | IQM of Y [95% CI] |",
+                "|---|---|---|---|---|---|---|---|"]
         decided = {"x": "X", "y": "Y", "tie": "neither", "same": "neither (equal scores)"}
         for claim, c, t in rows:
             task = labels.get(t["task"], t["task"])
             out.append(f"| ({claim['key']}) | {c['x']} | {c['y']} | {task}"
                        f" | {t['probability']:.2f} [{t['ci'][0]:.2f}, {t['ci'][1]:.2f}] | "
-                       f"{decided[t['outcome']]} |")
+                       f"{decided[t['outcome']]} | {with_interval(t['iqm_x'], t['iqm_x_ci'])} | "
+                       f"{with_interval(t['iqm_y'], t['iqm_y_ci'])} |")
     if all(claim["verdict"] == NO_DATA for claim in claims):
         out += ["", "No claim has data yet: none of the comparisons they need has complete runs "
                     "of both lines."]
     return out
+
+
+def with_interval(value: float, ci: list[float]) -> str:
+    return f"{value:.3f} [{ci[0]:.3f}, {ci[1]:.3f}]"
 
 
 def tally(comparison: dict[str, Any]) -> str:
