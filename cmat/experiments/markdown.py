@@ -60,13 +60,12 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
                  f"improvement)."), "",
                 "| line | runs | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|"]
         for label, line in agg["lines"].items():
-            out.append(f"| {label} | {line['runs']} | {line['iqm']:.3f} "
-                       f"[{line['iqm_ci'][0]:.3f}, {line['iqm_ci'][1]:.3f}] | "
-                       f"{line['mean']:.3f} [{line['mean_ci'][0]:.3f}, {line['mean_ci'][1]:.3f}] |")
+            out.append(f"| {label} | {line['runs']} | "
+                       f"{with_interval(line['iqm'], line['iqm_ci'])} | "
+                       f"{with_interval(line['mean'], line['mean_ci'])} |")
         out += ["", "| comparison | P(X > Y) [95% CI] |", "|---|---|"]
         for pair, value in agg["improvement"].items():
-            out.append(f"| {pair} | {value['probability']:.3f} "
-                       f"[{value['ci'][0]:.3f}, {value['ci'][1]:.3f}] |")
+            out.append(f"| {pair} | {with_interval(value['probability'], value['ci'])} |")
     out += claims_section(summary, score_text(plan), plan.spec.seeds)
     published = [(task, ref) for task in summary["tasks"] for ref in task["published"]]
     out += ["", "## Published reference figures (context, not this project's runs)", ""]
