@@ -28,6 +28,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from machine import describe
 
 
 def steps_per_second(tree: Path, python: str, env: str, algo: str, updates: int,
@@ -96,6 +97,7 @@ def main() -> None:
             print(f"{algo:<12} update program before {hash_a}  after {hash_b}  {verdict}")
     if args.pairs <= 0:
         return
+    print(describe(with_matmul=False))
     print(f"Training steps/s on {args.env}, {args.pairs} alternating pairs, overrides: "
           f"{' '.join(args.set) or '-'}")
     print(f"{'algo':<12} {'before':>9} {'after':>9} {'after/before median [range]':>30}")

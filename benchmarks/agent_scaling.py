@@ -27,7 +27,10 @@ exponents. `--merge` adds the points of earlier runs' JSON files (this
 run's points replace theirs), so one table can gather points that took several sessions (at
 the same --envs/--rollout/--updates); the table names the run (output directory name) each
 row's points came from. `--teams` with no names measures nothing and only redraws the merged
-points (and refits their exponents).
+points (and refits their exponents). `--compile-only` compiles every point's program and
+measures nothing: with JAX's persistent compilation cache set (`JAX_COMPILATION_CACHE_DIR`),
+the points can be compiled side by side first and timed one at a time after
+(`benchmarks/gpu.sh`).
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+
+from machine import describe
 
 LINES = {
     "cmat": ("cmat", []),
@@ -60,6 +65,11 @@ config = load_config(overrides=[f"env=smax:{env}", f"algo={algo}", f"num_envs={e
                                 f"rollout_length={rollout}", f"log_interval={updates}", *extra])
 trainer = JaxTrainer(config)
 state = trainer.init()
+if int(repeats) == 0:
+    start = time.perf_counter()
+    trainer.compile_chunk(state)
+    print(json.dumps(f"compiled in {time.perf_counter() - start:.1f} s"))
+    sys.exit()
 state, _ = trainer.train_chunk(state)
 jax.block_until_ready(state.learner.params)
 runs = []
@@ -79,7 +89,8 @@ print(json.dumps({"n": trainer.env_spec.num_agents, "sps": statistics.median(run
 
 def measure(team: str, algo: str, extra: list[str], envs: int, rollout: int,
             updates: int, repeats: int) -> dict[str, Any] | str:
-    """One point in its own process; the error's last line where it failed (e.g. memory)."""
+    """One point in its own process; the error's last line where it failed (e.g. memory), and
+    with `repeats` 0 the chunk's compile time, as text."""
     done = subprocess.run(
         [sys.executable, "-c", POINT, team, algo, str(envs), str(rollout), str(updates),
          str(repeats), *extra],
@@ -102,6 +113,9 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=1,
                         help="timed chunks per point (median reported; >= 2 for intervals)")
+    parser.add_argument("--compile-only", action="store_true",
+                        help="compile each point's training chunk and stop (with "
+                             "JAX_COMPILATION_CACHE_DIR set, later runs load it)")
     parser.add_argument("--merge", type=Path, nargs="*", default=[],
                         help="agent_scaling.json files of earlier runs to include")
     args = parser.parse_args()
@@ -117,19 +131,25 @@ def main() -> None:
         for line, points in earlier.items():
             results.setdefault(line, {}).update(points)
     run = args.out.name
+    machine = describe(with_matmul=False)
+    print(machine, flush=True)
     for team in args.teams:
         for line in args.lines:
             algo, extra = LINES[line]
             point = measure(team, algo, extra, args.envs, args.rollout, args.updates,
-                            args.repeats)
+                            0 if args.compile_only else args.repeats)
+            if args.compile_only:
+                print(f"{team:12} {line:10} {point}", flush=True)
+                continue
             if not isinstance(point, str):
-                point["run"] = run
+                point["run"], point["machine"] = run, machine
             results.setdefault(line, {})[team] = point
             shown = point if isinstance(point, str) else (
                 f"n={point['n']:.0f} {point['sps']:.0f} steps/s {memory_mb(point):.0f} MB")
             print(f"{team:12} {line:10} {shown}", flush=True)
             (args.out / "agent_scaling.json").write_text(json.dumps(results, indent=1))
-    write(results, args)
+    if not args.compile_only:
+        write(results, args)
 
 
 def growth_exponent(points: list[dict[str, Any]], rng: Any,
@@ -214,7 +234,9 @@ def write(results: dict[str, Points], args: argparse.Namespace) -> None:
         runs = sorted({str(p.get("run", "?")) for p in points if isinstance(p, dict)})
         rows[-1] += " | ".join(cells) + f" | {', '.join(runs)} |"
     growth = exponents(results, lines)
-    table = "\n".join([header, "", *rows, "", *growth]) + "\n"
+    machines = sorted({f"- {p['run']}: {p['machine']}" for points in results.values()
+                       for p in points.values() if isinstance(p, dict) and "machine" in p})
+    table = "\n".join([header, "", *rows, "", *growth, "", *machines]) + "\n"
     (args.out / "agent_scaling.md").write_text(table)
     print(table)
     figure, (speed, memory) = plt.subplots(1, 2, figsize=(10, 4))

@@ -10,11 +10,11 @@ separately.
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 from typing import Any
 
 import jax
+from machine import describe
 
 from cmat.envs import make_env
 from cmat.envs.random_policy import random_rollout
@@ -64,10 +64,8 @@ def main() -> None:
     else:
         configs = DEFAULT_CONFIGS
 
-    device = jax.devices()[0]
-    print(f"jax {jax.__version__} on {device.platform} ({device.device_kind}), "
-          f"{platform.processor() or platform.machine()}; steps={args.steps}, "
-          f"repeats={args.repeats} (fastest), random legal actions")
+    print(describe())
+    print(f"steps={args.steps}, repeats={args.repeats} (fastest), random legal actions")
     header = f"{'env':<20} {'agents':>6} {'envs':>5} {'compile s':>9} {'run s':>7} " \
              f"{'steps/s':>10} {'episodes':>8}"
     print(header)

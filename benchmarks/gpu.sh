@@ -1,15 +1,22 @@
 #!/usr/bin/env bash
-# The GPU figures on one GPU machine, in 10-minute calls, all outputs in one folder.
+# The GPU figures on one GPU machine in one 10-minute call, all outputs in one folder.
 #
 # Prepare here: `bash scripts/gpu_wheels.sh` (cmat's dependencies the GPU image lacks, and
 # pytest, into .whl/). There, in the repository root, with .whl carried:
 #   bash benchmarks/gpu.sh OUT
-# Steps, most wanted first, each under its own time limit so that the whole stays within
-# GPU_SECONDS (default 570; a step that would pass it is cut or skipped) and an interrupted step
-# keeps the lines it printed. Everything goes to OUT/gpu.log, each step under a "== NAME" line
-# with its command, exit code and the seconds since the start. Training steps/s, peak host
-# memory and the GPU allocator's peak come from benchmarks/throughput.py (one process per line,
-# each algorithm at its reference settings). The steps:
+# Everything goes to OUT/gpu.log within GPU_SECONDS (default 570). Compilation, 20-85 s per
+# process on an H200 (2026-12-04), made one step after another a 20-minute pass, so the script
+# works in two phases:
+#   1. every selected step's programs are compiled at once, one background process per step
+#      (`--compile-only`, JAX's preallocation off), into JAX's persistent compilation cache
+#      (JAX_COMPILATION_CACHE_DIR, default /tmp/cmat-jax-cache); the tests run beside them;
+#   2. the steps are timed one after another, each as soon as its own programs are compiled,
+#      loading them from the cache. A step may still run beside the compilation of a later
+#      one: that is host work, apart from XLA's autotuning of the later step's kernels; the log
+#      names the background jobs still running when each step starts.
+# Training steps/s, peak host memory and the GPU allocator's peak come from
+# benchmarks/throughput.py (one process per line, each algorithm at its reference settings).
+# The steps, most wanted first:
 #   throughput_3s5z_vs_3s6z_large  CMAT, MAT and MAPPO on SMAX 3s5z_vs_3s6z at 8,192
 #       environments; CMAT and MAT pass the 819,200-sample minibatch in 8 chunks
 #       (`ppo.minibatch_chunks`: the same gradient in less memory), MAPPO whole;
@@ -18,14 +25,10 @@
 #       environments (benchmarks/agent_scaling.py; in OUT/scaling/ its JSON after each point,
 #       its table and PNG if the step ends in time);
 #   throughput_3s5z_vs_3s6z_small  3s5z_vs_3s6z at 1,024 environments;
-#   tests                          the core properties on the GPU (each test compiles its own
-#       programs, 15-20 s apiece there): agent permutation, action masks, chunked gradients,
-#       the paper's loss with the joint ratio.
-# A full pass takes about 20 minutes on one H200 (2026-12-04: each throughput process spent
-# 20-85 s compiling; the scaling step finished one point in 120 s), more than one call:
-# GPU_STEPS="NAME ..." runs the named steps alone, in the order above, e.g.
-# GPU_STEPS="scaling tests" after a call that ran the two throughput steps.
-# GPU_QUICK=1 runs the same steps at CPU sizes: a check of the script, not a figure.
+#   tests                          the core properties on the GPU: agent permutation, action
+#       masks, chunked gradients, the paper's loss with the joint ratio (phase 1 only).
+# GPU_STEPS="NAME ..." runs the named steps alone. GPU_QUICK=1 runs the same steps at CPU sizes:
+# a check of the script, not a figure.
 set -uo pipefail
 out=${1:?usage: gpu.sh OUT}
 steps=(throughput_3s5z_vs_3s6z_large throughput_27m_vs_30m scaling throughput_3s5z_vs_3s6z_small
@@ -37,53 +40,94 @@ for name in "${chosen[@]}"; do
 done
 selected() { [[ " ${chosen[*]} " == *" $1 "* ]]; }
 
-mkdir -p "$out"
+mkdir -p "$out/compile"
 exec > >(tee "$out/gpu.log") 2>&1
 # shellcheck source=benchmarks/gpu_env.sh
 source benchmarks/gpu_env.sh || exit 1
 start=$(date +%s)
 budget=${GPU_SECONDS:-570}
+export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/cmat-jax-cache}
+export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
 
 if [ "${GPU_QUICK:-0}" = 1 ]; then
-  small=8 large=16 scaling_envs=8 teams=(3m 8m)
+  small=8 large=16 scaling_envs=8 teams="3m 8m"
 else
-  small=1024 large=8192 scaling_envs=256 teams=(3m 27m_vs_30m 100m)
+  small=1024 large=8192 scaling_envs=256 teams="3m 27m_vs_30m 100m"
 fi
+export small large scaling_envs teams out PY
 
-step() {  # step NAME LIMIT COMMAND...: within LIMIT and the time left
-  local name=$1 limit=$2
-  shift 2
-  local left=$(( budget - ($(date +%s) - start) ))
-  (( left < limit )) && limit=$left
-  if (( limit <= 5 )); then echo "== $name: skipped (time budget spent)"; return; fi
-  echo "== $name (at most $limit s): $*"
-  timeout "$limit" bash -c '"$@"' "$name" "$@"
-  echo "== $name: exit code $? after $(( $(date +%s) - start )) s (124: time limit)"
-}
-
-compare() {  # compare ENV ENVS ALGO...: benchmarks/throughput.py's algorithm comparison
+compare() {  # compare ENV ENVS ALGO...: throughput.py's algorithm comparison
   local env=$1 envs=$2
   shift 2
   local lines=()
   for algo in "$@"; do lines+=(--algo "$algo"); done
   "$PY" benchmarks/throughput.py --compare-algorithms --env "smax:$env" "${lines[@]}" \
-    --set "num_envs=$envs"
+    --set "num_envs=$envs" ${COMPILE_ONLY:+--compile-only}
 }
-export -f compare
-export PY
-
-selected throughput_3s5z_vs_3s6z_large && step throughput_3s5z_vs_3s6z_large 240 \
+throughput_3s5z_vs_3s6z_large() {
   compare 3s5z_vs_3s6z "$large" cmat:ppo.minibatch_chunks=8 mat:ppo.minibatch_chunks=8 mappo
-selected throughput_27m_vs_30m && step throughput_27m_vs_30m 300 \
-  compare 27m_vs_30m "$small" cmat mat mappo
-selected scaling && step scaling 360 "$PY" benchmarks/agent_scaling.py --out "$out/scaling" \
-  --teams "${teams[@]}" --envs "$scaling_envs" --updates 1 --lines cmat mat
-selected throughput_3s5z_vs_3s6z_small && step throughput_3s5z_vs_3s6z_small 150 \
-  compare 3s5z_vs_3s6z "$small" cmat mat mappo
-selected tests && step tests 150 "$PY" -m pytest -q -o addopts= -p no:cacheprovider \
-  tests/test_network.py::test_permuting_agents_permutes_policies_and_keeps_value_and_consensus \
-  tests/test_network.py::test_masked_actions_have_zero_probability_and_are_never_sampled \
-  tests/test_minibatch_chunks.py::test_chunked_minibatch_gives_the_same_loss_and_gradient \
-  tests/test_cmat_options.py::test_paper_options_give_the_papers_loss
-echo "== done after $(( $(date +%s) - start )) s"
+}
+throughput_27m_vs_30m() { compare 27m_vs_30m "$small" cmat mat mappo; }
+scaling() {
+  local team_list
+  read -ra team_list <<< "$teams"
+  "$PY" benchmarks/agent_scaling.py --out "$out/scaling" --teams "${team_list[@]}" \
+    --envs "$scaling_envs" --updates 1 --lines cmat mat ${COMPILE_ONLY:+--compile-only}
+}
+throughput_3s5z_vs_3s6z_small() { compare 3s5z_vs_3s6z "$small" cmat mat mappo; }
+tests() {
+  "$PY" -m pytest -q -o addopts= -p no:cacheprovider \
+    tests/test_network.py::test_permuting_agents_permutes_policies_and_keeps_value_and_consensus \
+    tests/test_network.py::test_masked_actions_have_zero_probability_and_are_never_sampled \
+    tests/test_minibatch_chunks.py::test_chunked_minibatch_gives_the_same_loss_and_gradient \
+    tests/test_cmat_options.py::test_paper_options_give_the_papers_loss
+}
+export -f compare "${steps[@]}"
+
+elapsed() { echo $(( $(date +%s) - start )); }
+
+declare -A background
+echo "== phase 1 at $(elapsed) s: compiling ${chosen[*]} side by side"
+for name in "${chosen[@]}"; do
+  if [ "$name" = tests ]; then
+    XLA_PYTHON_CLIENT_PREALLOCATE=false timeout "$budget" bash -c tests \
+      > "$out/compile/tests.log" 2>&1 &
+  else
+    COMPILE_ONLY=1 XLA_PYTHON_CLIENT_PREALLOCATE=false timeout "$budget" bash -c "$name" \
+      > "$out/compile/$name.log" 2>&1 &
+  fi
+  background[$name]=$!
+done
+
+running() {  # the background jobs still running
+  local name names=()
+  for name in "${!background[@]}"; do
+    kill -0 "${background[$name]}" 2>/dev/null && names+=("$name")
+  done
+  echo "${names[*]:-none}"
+}
+
+settle() {  # settle NAME: wait for NAME's background job, then print its log
+  wait "${background[$1]}"
+  echo "== $1, phase 1: exit code $? after $(elapsed) s (124: time limit)"
+  cat "$out/compile/$1.log"
+}
+
+step() {  # step NAME LIMIT: NAME timed, within LIMIT and the time left
+  local name=$1 limit=$2 left
+  settle "$name"
+  left=$(( budget - $(elapsed) ))
+  (( left < limit )) && limit=$left
+  if (( limit <= 5 )); then echo "== $name: skipped (time budget spent)"; return; fi
+  echo "== $name (at most $limit s; background jobs still running: $(running))"
+  timeout "$limit" bash -c "$name"
+  echo "== $name: exit code $? after $(elapsed) s (124: time limit)"
+}
+
+selected throughput_3s5z_vs_3s6z_large && step throughput_3s5z_vs_3s6z_large 150
+selected throughput_27m_vs_30m && step throughput_27m_vs_30m 150
+selected scaling && step scaling 200
+selected throughput_3s5z_vs_3s6z_small && step throughput_3s5z_vs_3s6z_small 90
+selected tests && settle tests
+echo "== done after $(elapsed) s"
 ls -la "$out"

@@ -17,13 +17,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.util
-import os
-import platform
 import time
 from typing import Any
 
 import jax
 import numpy as np
+from machine import describe
 
 from cmat.envs.host import make_host_env
 from cmat.envs.host.pool import make_pool
@@ -116,8 +115,8 @@ def main() -> None:
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="config overrides for the training runs")
     args = parser.parse_args()
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-          f"jax {jax.__version__} on {jax.default_backend()}; envs={args.envs}, "
+    print(f"# {describe()}")
+    print(f"# envs={args.envs}, "
           f"rollout={args.rollout}, updates={args.updates}")
     header = (f"{'env':36} {'workers':>7} {'env-only/s':>11} {'collect/s':>10} {'train/s':>9} "
               f"{'update s':>9} {'1st chunk s':>11}")

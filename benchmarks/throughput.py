@@ -38,6 +38,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from machine import describe, matmul_gflops
 
 from cmat.algorithms import algorithm_names
 
@@ -59,15 +60,6 @@ def fastest(function: Callable[[], Any], repeats: int) -> float:
         jax.block_until_ready(function())
         times.append(time.perf_counter() - start)
     return min(times)
-
-
-def matmul_flops_per_second(size: int = 2048, repeats: int = 5) -> float:
-    import jax
-
-    a = jax.random.normal(jax.random.PRNGKey(0), (size, size))
-    product = jax.jit(lambda x: x @ x)
-    jax.block_until_ready(product(a))
-    return 2 * size**3 / fastest(lambda: product(a), repeats)
 
 
 def compiled_flops(compiled: Any) -> float:
@@ -121,7 +113,7 @@ def breakdown(env_id: str, num_envs: int, repeats: int) -> dict[str, float]:
     jax.block_until_ready(train(state))
     train_s = fastest(lambda: train(state), repeats)
 
-    matmul = matmul_flops_per_second()
+    matmul = matmul_gflops() * 1e9
     return {
         "env_only_sps": steps / env_only_s,
         "collect_sps": steps / collect_s,
@@ -145,7 +137,10 @@ def device_peak_gb() -> float | None:
     return max(peaks) / 1e9 if peaks and jax.default_backend() != "cpu" else None
 
 
-def measure_training(env: str, algo: str, overrides: list[str], updates: int) -> dict[str, Any]:
+def measure_training(env: str, algo: str, overrides: list[str], updates: int,
+                     compile_only: bool = False) -> dict[str, Any]:
+    """Training steps/s of one algorithm, timed on the second chunk; with `compile_only`, the
+    chunk's compilation alone (which fills JAX's persistent cache where one is set)."""
     import jax
 
     from cmat.resolve import load_config
@@ -157,6 +152,9 @@ def measure_training(env: str, algo: str, overrides: list[str], updates: int) ->
     trainer = JaxTrainer(config)
     state = trainer.init()
     start = time.perf_counter()
+    if compile_only:
+        trainer.compile_chunk(state)
+        return {"compile_seconds": time.perf_counter() - start}
     state, _ = trainer.train_chunk(state)
     first = time.perf_counter() - start
     start = time.perf_counter()
@@ -173,6 +171,7 @@ def measure_training(env: str, algo: str, overrides: list[str], updates: int) ->
 
 
 def compare_algorithms(args: argparse.Namespace) -> None:
+    print(describe(with_matmul=False))
     print(f"Training throughput on {args.env} ({args.updates} updates per timed chunk; "
           "each algorithm with its own defaults from cmat.config)")
     print(f"{'algo':<12} {'preset':<10} {'steps/s':>9} {'s/update':>9} {'compile s':>10} "
@@ -183,12 +182,18 @@ def compare_algorithms(args: argparse.Namespace) -> None:
             overrides = [*PRESETS[preset], *args.set, *filter(None, own.split(","))]
             command = [sys.executable, __file__, "--single", "--env", args.env, "--algo", algo,
                        "--updates", str(args.updates), "--set", *overrides]
+            if args.compile_only:
+                command.append("--compile-only")
             done = subprocess.run(command, check=False, capture_output=True, text=True)
             if done.returncode != 0:
                 reason = (done.stderr.strip().splitlines() or ["failed"])[-1]
                 print(f"{line:<12} {preset:<10} failed: {reason}")
                 continue
             result = json.loads(done.stdout.strip().splitlines()[-1])
+            if args.compile_only:
+                print(f"{line:<12} {preset:<10} compiled in {result['compile_seconds']:.1f} s",
+                      flush=True)
+                continue
             device_gb = result["peak_device_gb"]
             print(f"{line:<12} {preset:<10} {result['steps_per_second']:>9.0f} "
                   f"{result['seconds_per_update']:>9.2f} {result['compile_seconds']:>10.1f} "
@@ -221,14 +226,19 @@ def main() -> None:
                         help="comparison config (default: reference)")
     parser.add_argument("--updates", type=int, default=1, help="updates per timed chunk")
     parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
+    parser.add_argument("--compile-only", action="store_true",
+                        help="compile each line's training chunk and stop (with "
+                             "JAX_COMPILATION_CACHE_DIR set, later runs load it)")
     parser.add_argument("--single", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.single:
-        print(json.dumps(measure_training(args.env, args.algo[0], args.set, args.updates)))
+        print(json.dumps(measure_training(args.env, args.algo[0], args.set, args.updates,
+                                          args.compile_only)))
         return
     if args.compare_algorithms:
         compare_algorithms(args)
         return
+    print(describe())
     print(f"CMAT default config (32 -> {args.envs} envs x 100 steps, 15 epochs, 1 minibatch, "
           f"d=64, 1 block, m=n); fastest of {args.repeats}; "
           f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")

@@ -132,7 +132,7 @@ def main() -> None:
         runner = trainer.JaxTrainer(config)
         state = runner.init()
         one = jax.numpy.asarray(1, jax.numpy.int32)
-        compiled = runner._chunk.lower(state, one).compile()
+        compiled = runner.compile_chunk(state)
 
         def run_once() -> Any:
             nonlocal state

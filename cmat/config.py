@@ -108,11 +108,13 @@ class PPOConfig:
     """Minibatches each pass is split into (`num_mini_batch`); must divide
     num_envs × rollout_length."""
     minibatch_chunks: int = 1
-    """Sequential chunks each minibatch's network pass runs in (`cmat.algorithms.base.chunked`):
-    k > 1 keeps the activations of one chunk at a time and recomputes them for the backward
-    pass, so the gradient is the same (up to floating-point order) at about 1/k of the
-    activation memory. A memory knob for large minibatches (`benchmarks/throughput.py --preset
-    mava`); at small ones the recomputation costs time. Must divide the minibatch size."""
+    """Sequential slices each minibatch's gradient is computed in
+    (`cmat.algorithms.sgd.minibatch_gradient`): k > 1 keeps the activations of one slice at a
+    time, so the gradient is the same (up to floating-point order) at about 1/k of the
+    activation memory. Without active masks the slices' gradients are averaged; with them the
+    network pass is recomputed slice by slice for the backward pass. A memory knob for large
+    minibatches (`benchmarks/throughput.py --preset mava`), faster there too; at small ones it
+    costs time. Must divide the minibatch size."""
     clip_eps: float = 0.05
     """Clip range of the joint ratio and of the clipped value loss."""
     ent_coef: float = 0.01

@@ -6,11 +6,14 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterator
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import pytest
+from jax.experimental.compilation_cache import compilation_cache
 
+from cmat.config import TrainConfig
 from cmat.resolve import load_config
 from cmat.runners import devices
 from cmat.runners.trainer import JaxTrainer
@@ -41,12 +44,17 @@ def ynn_fusions(text: str) -> list[set[str]]:
     return fusions
 
 
+def small_config(algo: str) -> TrainConfig:
+    return load_config(overrides=["env=matrix:fig1", f"algo={algo}", "num_envs=4",
+                                  "rollout_length=4", "total_steps=32", "log_interval=2",
+                                  "ppo.epochs=1", "network.n_embd=16"])
+
+
 def training_program(algo: str) -> str:
-    config = load_config(overrides=["env=matrix:fig1", f"algo={algo}", "num_envs=4",
-                                    "rollout_length=4", "total_steps=32", "log_interval=2",
-                                    "ppo.epochs=1", "network.n_embd=16"])
-    trainer = JaxTrainer(config)
-    return compiled_text(trainer._chunk.lower(trainer.init(), jnp.int32(2)))
+    trainer = JaxTrainer(small_config(algo))
+    text = trainer.compile_chunk(trainer.init()).as_text()
+    assert text is not None
+    return text
 
 
 MATMUL_OPERATIONS = {"parameter", "bitcast", "copy", "transpose", "dot"}
@@ -82,3 +90,27 @@ def test_no_options_off_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert devices.compiler_options() == devices.compiler_options(ynnpack_matmuls=True) == {}
+
+
+@pytest.fixture
+def persistent_cache(tmp_path: Path) -> Iterator[Path]:
+    """JAX's persistent compilation cache in `tmp_path` for one test, every program cached."""
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    previous = {name: getattr(jax.config, name) for name in names}
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+    compilation_cache.reset_cache()
+    yield tmp_path
+    for name, value in previous.items():
+        jax.config.update(name, value)
+    compilation_cache.reset_cache()
+
+
+def test_compile_chunk_compiles_the_program_train_chunk_runs(persistent_cache: Path) -> None:
+    trainer = JaxTrainer(small_config("cmat"))
+    state = trainer.init()
+    trainer.compile_chunk(state)
+    cached = set(persistent_cache.iterdir())
+    assert cached
+    trainer.train_chunk(state)
+    assert set(persistent_cache.iterdir()) == cached

@@ -1,6 +1,7 @@
-"""`ppo.minibatch_chunks`: the network pass over a minibatch in sequential recomputed slices
-gives the same loss and gradient with less activation memory, and configs that cannot use it
-are refused."""
+"""`ppo.minibatch_chunks`: a minibatch's gradient from sequential slices (accumulated where the
+loss is a plain mean over samples, else the network pass recomputed slice by slice) is the
+same loss and gradient with less activation memory, and configs that cannot use it are
+refused."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import pytest
 from test_cmat_options import batch_for
 
 from cmat.algorithms import build_algorithm
+from cmat.algorithms.sgd import minibatch_gradient
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
@@ -81,3 +83,64 @@ def test_configs_that_cannot_chunk_are_refused_in_one_line(overrides, named) -> 
     with pytest.raises(CmatError, match=re.escape(named)) as error:
         load_config(overrides=overrides)
     assert "\n" not in str(error.value)
+
+
+def gradient_with(algorithm, params, batch, ppo: PPOConfig):
+    return jax.jit(lambda p: minibatch_gradient(algorithm.loss, p, batch, ppo))(params)
+
+
+@pytest.mark.parametrize("algo, spec", [
+    ("cmat", DISCRETE),
+    pytest.param("mat", DISCRETE, marks=pytest.mark.slow),
+])
+def test_accumulated_slices_give_the_minibatchs_loss_and_gradient(algo, spec) -> None:
+    algorithm = build_algorithm(algo, NetworkConfig(n_embd=8, init_gain=1.0,
+                                                    consensus_iterations=2), spec)
+    params, batch = batch_for(algorithm)
+    ppo = PPOConfig(active_masks=False, per_agent_gae=algo == "mat")
+    (whole, whole_metrics), whole_grad = gradient_with(algorithm, params, batch, ppo)
+    (sliced, sliced_metrics), sliced_grad = gradient_with(
+        algorithm, params, batch, dataclasses.replace(ppo, minibatch_chunks=4))
+    assert float(sliced) == pytest.approx(float(whole), rel=1e-5, abs=1e-7)
+    for name in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac"):
+        assert float(sliced_metrics[name]) == pytest.approx(
+            float(whole_metrics[name]), rel=1e-5, abs=1e-7), name
+    flat_whole, _ = jax.flatten_util.ravel_pytree(whole_grad)
+    flat_sliced, _ = jax.flatten_util.ravel_pytree(sliced_grad)
+    scale = float(np.abs(flat_whole).max())
+    assert scale > 0
+    np.testing.assert_allclose(flat_sliced, flat_whole, rtol=1e-4, atol=1e-5 * scale)
+
+
+@pytest.mark.parametrize("active_masks, calls", [
+    (False, [(8, 1)]),
+    (True, [(32, 4)]),
+])
+def test_slices_are_accumulated_only_where_the_loss_is_a_plain_mean(active_masks, calls) -> None:
+    """Without active masks the loss sees each 8-sample slice whole (traced once, in the
+    scan); with them, the whole 32-sample minibatch and the chunk count, to recompute."""
+    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=8, consensus_iterations=1), DISCRETE)
+    params, batch = batch_for(algorithm)
+    seen = []
+
+    def loss(p, minibatch, ppo):
+        seen.append((minibatch.advantages.shape[0], ppo.minibatch_chunks))
+        return algorithm.loss(p, minibatch, ppo)
+
+    ppo = PPOConfig(active_masks=active_masks, minibatch_chunks=4)
+    jax.eval_shape(lambda p: minibatch_gradient(loss, p, batch, ppo), params)
+    assert set(seen) == set(calls)
+
+
+@pytest.mark.optimised  # XLA's buffer assignment after its optimisations is what is measured
+def test_accumulated_slices_shrink_the_gradients_working_memory() -> None:
+    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=32, consensus_iterations=1), DISCRETE)
+    params, batch = batch_for(algorithm)
+    batch = jax.tree.map(lambda x: np.concatenate([x] * 16), batch)
+
+    def working_memory(chunks: int) -> int:
+        ppo = PPOConfig(active_masks=False, minibatch_chunks=chunks)
+        gradient = jax.jit(lambda p: minibatch_gradient(algorithm.loss, p, batch, ppo))
+        return gradient.lower(params).compile().memory_analysis().temp_size_in_bytes
+
+    assert working_memory(8) < 0.5 * working_memory(1)

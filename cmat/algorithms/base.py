@@ -60,11 +60,24 @@ def active_mask(batch: Batch, ppo: PPOConfig) -> jax.Array | None:
     return batch.alive if ppo.active_masks and batch.alive is not None else None
 
 
+def value_loss_masked(ppo: PPOConfig) -> bool:
+    """Whether a per-agent value loss averages over active agents only: `ppo.value_active_masks`,
+    or `ppo.active_masks` where that is None."""
+    return ppo.active_masks if ppo.value_active_masks is None else ppo.value_active_masks
+
+
 def value_active_mask(batch: Batch, ppo: PPOConfig) -> jax.Array | None:
     """The [B, n] mask a per-agent value loss's mean runs over: the batch's `alive` with
-    `ppo.value_active_masks` (None there: `ppo.active_masks`), else None (every agent)."""
-    masked = ppo.active_masks if ppo.value_active_masks is None else ppo.value_active_masks
-    return batch.alive if masked and batch.alive is not None else None
+    `value_loss_masked(ppo)`, else None (every agent)."""
+    return batch.alive if value_loss_masked(ppo) and batch.alive is not None else None
+
+
+def loss_is_sample_mean(ppo: PPOConfig) -> bool:
+    """Whether the shared PPO losses are plain means over the minibatch's samples: no active
+    masks in the policy, entropy or value means, whose denominators (the active entries) would
+    differ from slice to slice. Then a minibatch's loss and gradient are the means of those of
+    equal slices of it (`cmat.algorithms.sgd.minibatch_gradient`)."""
+    return not ppo.active_masks and not value_loss_masked(ppo)
 
 
 class ActResult(NamedTuple):

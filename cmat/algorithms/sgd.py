@@ -8,6 +8,7 @@ restrict it (fine-tuning masks, HAPPO's per-agent phases) without this module kn
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -15,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from cmat.algorithms.base import ActResult, Batch, Loss, Params
+from cmat.algorithms.base import ActResult, Batch, Loss, Params, loss_is_sample_mean
 from cmat.algorithms.ppo import block_grad_norms
 from cmat.config import PPOConfig
 from cmat.errors import CmatError
@@ -42,13 +43,12 @@ def minibatch_sgd(
     ran, and `epochs_run` says how many did. B must be divisible by `ppo.num_minibatches`
     (`TrainConfig.validate` checks it).
     """
-    grad_fn = jax.value_and_grad(loss, has_aux=True)
 
     def minibatch_step(
         carry: tuple[Params, Any], minibatch: Batch
     ) -> tuple[tuple[Params, Any], Metrics]:
         params, opt_state = carry
-        (value, metrics), grads = grad_fn(params, minibatch, ppo)
+        (value, metrics), grads = minibatch_gradient(loss, params, minibatch, ppo)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         metrics = {
             **metrics, "loss": value, "grad_norm": optax.tree.norm(grads),
@@ -107,6 +107,46 @@ def minibatch_sgd(
         lambda x: jnp.sum(jnp.mean(x, axis=1) * ran) / jnp.maximum(epochs_run, 1), metrics
     )
     return params, opt_state, {**averaged, "epochs_run": epochs_run.astype(jnp.float32)}
+
+
+def minibatch_gradient(
+    loss: Loss, params: Params, minibatch: Batch, ppo: PPOConfig
+) -> tuple[tuple[jax.Array, Metrics], Params]:
+    """`jax.value_and_grad` of `loss` (with its metrics) on `minibatch` [B, ...].
+
+    With `ppo.minibatch_chunks` = k > 1 and a loss that is a plain mean over samples
+    (`loss_is_sample_mean`: no active masks), the minibatch is split into k equal slices whose
+    values, metrics and gradients are computed one after another (`jax.lax.scan`) and
+    averaged: the same loss and gradient up to floating-point order, with one slice's
+    activations live at a time and nothing recomputed. The metrics are the slices' means, so
+    the loss terms are the minibatch's and the diagnostics averaged over active steps (the
+    per-agent ones) weight the slices equally. With active masks the means' denominators
+    differ between slices, so the loss itself runs its network in k recomputed slices instead
+    (`cmat.algorithms.base.chunked`), which costs a second forward pass (README, Speed). B must
+    be divisible by k (`TrainConfig.validate` checks it)."""
+    grad_fn = jax.value_and_grad(loss, has_aux=True)
+    chunks = ppo.minibatch_chunks
+    if chunks == 1 or not loss_is_sample_mean(ppo):
+        result: tuple[tuple[jax.Array, Metrics], Params] = grad_fn(params, minibatch, ppo)
+        return result
+    whole = dataclasses.replace(ppo, minibatch_chunks=1)
+    slices = jax.tree.map(lambda x: x.reshape(chunks, -1, *x.shape[1:]), minibatch)
+
+    def slice_gradient(piece: Batch) -> tuple[tuple[jax.Array, Metrics], Params]:
+        result: tuple[tuple[jax.Array, Metrics], Params] = grad_fn(params, piece, whole)
+        return result
+
+    def accumulate(total: Any, piece: Batch) -> tuple[Any, None]:
+        return jax.tree.map(
+            lambda sum_so_far, term: sum_so_far + term / chunks, total, slice_gradient(piece)
+        ), None
+
+    first = jax.tree.map(lambda x: x[0], slices)
+    zeros = jax.tree.map(
+        lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(slice_gradient, first)
+    )
+    mean: tuple[tuple[jax.Array, Metrics], Params] = jax.lax.scan(accumulate, zeros, slices)[0]
+    return mean
 
 
 def finetune_optimizer(

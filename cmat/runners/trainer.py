@@ -168,6 +168,15 @@ class JaxTrainer:
         numbers["env_steps"] = np.full(self.config.seeds, self.env_steps(state))
         return state, numbers
 
+    def compile_chunk(self, state: TrainerState) -> jax.stages.Compiled:
+        """Compile the program `train_chunk` runs on states like `state`, without running it.
+
+        The same program, so with JAX's persistent compilation cache set
+        (`JAX_COMPILATION_CACHE_DIR`) a later process's `train_chunk` loads it instead of
+        compiling: `benchmarks/gpu.sh` compiles its runs side by side this way, then times them
+        one at a time. The result also tells the program's memory (`memory_analysis()`)."""
+        return self._chunk.lower(state, jnp.asarray(1, jnp.int32)).compile()
+
     def evaluate(self, state: TrainerState, episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
         keys = seed_keys(self.config, offset=EVAL_SEED_OFFSET + seed)
         metrics = self._evaluate(state.learner.params, keys, episodes)
