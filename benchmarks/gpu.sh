@@ -8,12 +8,16 @@
 # process on an H200 (2026-12-04), made one step after another a 20-minute pass, so the script
 # works in two phases:
 #   1. every selected step's programs are compiled at once, one background process per step
-#      (`--compile-only`, JAX's preallocation off), into JAX's persistent compilation cache
-#      (JAX_COMPILATION_CACHE_DIR, default /tmp/cmat-jax-cache); the tests run beside them;
+#      (`--compile-only`), into JAX's persistent compilation cache (JAX_COMPILATION_CACHE_DIR,
+#      default /tmp/cmat-jax-cache); the tests run beside them;
 #   2. the steps are timed one after another, each as soon as its own programs are compiled,
-#      loading them from the cache. A step may still run beside the compilation of a later
-#      one: that is host work, apart from XLA's autotuning of the later step's kernels; the log
-#      names the background jobs still running when each step starts.
+#      loading them from the cache (the log gives the cache's entries before and after each).
+#      A step may still run beside the compilation of a later one: that is host work, apart
+#      from XLA's autotuning of the later step's kernels; the log names the background jobs
+#      still running when each step starts. Kernels autotuned while several processes share
+#      the GPU may be slower choices than one process alone would make.
+# JAX's preallocation is off in both phases (the processes share the GPU's memory); the GPU
+# allocator's peak that throughput.py reports does not depend on it.
 # Training steps/s, peak host memory and the GPU allocator's peak come from
 # benchmarks/throughput.py (one process per line, each algorithm at its reference settings).
 # The steps, most wanted first:
@@ -33,21 +37,25 @@ set -uo pipefail
 out=${1:?usage: gpu.sh OUT}
 steps=(throughput_3s5z_vs_3s6z_large throughput_27m_vs_30m scaling throughput_3s5z_vs_3s6z_small
   tests)
-read -ra chosen <<< "${GPU_STEPS:-${steps[*]}}"
-for name in "${chosen[@]}"; do
+read -ra asked <<< "${GPU_STEPS:-${steps[*]}}"
+for name in "${asked[@]}"; do
   [[ " ${steps[*]} " == *" $name "* ]] || {
     echo "GPU_STEPS: unknown step $name (steps: ${steps[*]})" >&2; exit 2; }
 done
-selected() { [[ " ${chosen[*]} " == *" $1 "* ]]; }
+selected() { [[ " ${asked[*]} " == *" $1 "* ]]; }
+chosen=()
+for name in "${steps[@]}"; do selected "$name" && chosen+=("$name"); done
 
+start=$(date +%s)
+budget=${GPU_SECONDS:-570}
 mkdir -p "$out/compile"
 exec > >(tee "$out/gpu.log") 2>&1
 # shellcheck source=benchmarks/gpu_env.sh
 source benchmarks/gpu_env.sh || exit 1
-start=$(date +%s)
-budget=${GPU_SECONDS:-570}
 export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/cmat-jax-cache}
 export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+export XLA_PYTHON_CLIENT_PREALLOCATE=false
+trap 'kill $(jobs -p) 2>/dev/null' EXIT
 
 if [ "${GPU_QUICK:-0}" = 1 ]; then
   small=8 large=16 scaling_envs=8 teams="3m 8m"
@@ -80,6 +88,7 @@ tests() {
     tests/test_network.py::test_permuting_agents_permutes_policies_and_keeps_value_and_consensus \
     tests/test_network.py::test_masked_actions_have_zero_probability_and_are_never_sampled \
     tests/test_minibatch_chunks.py::test_chunked_minibatch_gives_the_same_loss_and_gradient \
+    tests/test_minibatch_chunks.py::test_accumulated_slices_give_the_minibatchs_loss_and_gradient \
     tests/test_cmat_options.py::test_paper_options_give_the_papers_loss
 }
 export -f compare "${steps[@]}"
@@ -90,11 +99,9 @@ declare -A background
 echo "== phase 1 at $(elapsed) s: compiling ${chosen[*]} side by side"
 for name in "${chosen[@]}"; do
   if [ "$name" = tests ]; then
-    XLA_PYTHON_CLIENT_PREALLOCATE=false timeout "$budget" bash -c tests \
-      > "$out/compile/tests.log" 2>&1 &
+    timeout "$budget" bash -c tests > "$out/compile/tests.log" 2>&1 &
   else
-    COMPILE_ONLY=1 XLA_PYTHON_CLIENT_PREALLOCATE=false timeout "$budget" bash -c "$name" \
-      > "$out/compile/$name.log" 2>&1 &
+    COMPILE_ONLY=1 timeout "$budget" bash -c "$name" > "$out/compile/$name.log" 2>&1 &
   fi
   background[$name]=$!
 done
@@ -113,15 +120,21 @@ settle() {  # settle NAME: wait for NAME's background job, then print its log
   cat "$out/compile/$1.log"
 }
 
+cached() { find "$JAX_COMPILATION_CACHE_DIR" -type f 2>/dev/null | wc -l; }
+
 step() {  # step NAME LIMIT: NAME timed, within LIMIT and the time left
-  local name=$1 limit=$2 left
+  local name=$1 limit=$2 left before code
   settle "$name"
   left=$(( budget - $(elapsed) ))
   (( left < limit )) && limit=$left
   if (( limit <= 5 )); then echo "== $name: skipped (time budget spent)"; return; fi
+  before=$(cached)
   echo "== $name (at most $limit s; background jobs still running: $(running))"
   timeout "$limit" bash -c "$name"
-  echo "== $name: exit code $? after $(elapsed) s (124: time limit)"
+  code=$?
+  echo "== $name: exit code $code after $(elapsed) s (124: time limit); compilation cache" \
+    "entries $before before, $(cached) after (equal: nothing compiled afresh, unless a" \
+    "background job added some meanwhile)"
 }
 
 selected throughput_3s5z_vs_3s6z_large && step throughput_3s5z_vs_3s6z_large 150

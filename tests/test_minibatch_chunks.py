@@ -89,15 +89,20 @@ def gradient_with(algorithm, params, batch, ppo: PPOConfig):
     return jax.jit(lambda p: minibatch_gradient(algorithm.loss, p, batch, ppo))(params)
 
 
-@pytest.mark.parametrize("algo, spec", [
-    ("cmat", DISCRETE),
-    pytest.param("mat", DISCRETE, marks=pytest.mark.slow),
+@pytest.mark.parametrize("algo, spec, network, options", [
+    ("cmat", DISCRETE, {}, {}),
+    ("cmat", CONTINUOUS, {"consensus_policy": "categorical"}, {"joint_clip": "per_agent"}),
+    ("pmat", CONTINUOUS, {}, {}),
+    pytest.param("mat", DISCRETE, {}, {"per_agent_gae": True}, marks=pytest.mark.slow),
+    pytest.param("triple_bert", CONTINUOUS, {}, {}, marks=pytest.mark.slow),
 ])
-def test_accumulated_slices_give_the_minibatchs_loss_and_gradient(algo, spec) -> None:
+def test_accumulated_slices_give_the_minibatchs_loss_and_gradient(
+    algo, spec, network, options
+) -> None:
     algorithm = build_algorithm(algo, NetworkConfig(n_embd=8, init_gain=1.0,
-                                                    consensus_iterations=2), spec)
+                                                    consensus_iterations=2, **network), spec)
     params, batch = batch_for(algorithm)
-    ppo = PPOConfig(active_masks=False, per_agent_gae=algo == "mat")
+    ppo = PPOConfig(active_masks=False, **options)
     (whole, whole_metrics), whole_grad = gradient_with(algorithm, params, batch, ppo)
     (sliced, sliced_metrics), sliced_grad = gradient_with(
         algorithm, params, batch, dataclasses.replace(ppo, minibatch_chunks=4))

@@ -111,7 +111,11 @@ class Algorithm(Protocol):
     capabilities: ClassVar[frozenset[str]]
     """What the algorithm has of `cmat.algorithms.OPTION_CAPABILITIES`: 'consensus',
     'joint_ratio', 'per_agent_values', 'recurrent', 'minibatch_chunks',
-    'sampled_order'; the options that need one are rejected without it."""
+    'sampled_order'; the options that need one are rejected without it. 'minibatch_chunks'
+    promises a loss whose reductions over the minibatch are means with parameter-independent
+    denominators, so that without active masks equal slices' losses average to the
+    minibatch's (`loss_is_sample_mean`), and whose network pass with
+    `ppo.minibatch_chunks` = k runs through `chunked`."""
 
     reference_defaults: ClassVar[dict[str, Any]]
     """Config values of the algorithm's reference implementation where they differ from the
