@@ -58,14 +58,15 @@ def test_chunked_minibatch_gives_the_same_loss_and_gradient(algo, spec, network)
 
 
 @pytest.mark.optimised  # XLA's buffer assignment after its optimisations is what is measured
-def test_chunks_shrink_the_compiled_gradients_working_memory() -> None:
+@pytest.mark.parametrize("active_masks", [True, False], ids=["recomputed", "accumulated"])
+def test_chunks_shrink_the_compiled_gradients_working_memory(active_masks) -> None:
     algorithm = build_algorithm("cmat", NetworkConfig(n_embd=32, consensus_iterations=1), DISCRETE)
     params, batch = batch_for(algorithm)
     batch = jax.tree.map(lambda x: np.concatenate([x] * 16), batch)
 
     def working_memory(chunks: int) -> int:
-        ppo = dataclasses.replace(PPOConfig(), minibatch_chunks=chunks)
-        gradient = jax.jit(jax.grad(lambda p: algorithm.loss(p, batch, ppo)[0]))
+        ppo = PPOConfig(active_masks=active_masks, minibatch_chunks=chunks)
+        gradient = jax.jit(lambda p: minibatch_gradient(algorithm.loss, p, batch, ppo))
         return gradient.lower(params).compile().memory_analysis().temp_size_in_bytes
 
     assert working_memory(8) < 0.5 * working_memory(1)
@@ -135,17 +136,3 @@ def test_slices_are_accumulated_only_where_the_loss_is_a_plain_mean(active_masks
     ppo = PPOConfig(active_masks=active_masks, minibatch_chunks=4)
     jax.eval_shape(lambda p: minibatch_gradient(loss, p, batch, ppo), params)
     assert set(seen) == set(calls)
-
-
-@pytest.mark.optimised  # XLA's buffer assignment after its optimisations is what is measured
-def test_accumulated_slices_shrink_the_gradients_working_memory() -> None:
-    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=32, consensus_iterations=1), DISCRETE)
-    params, batch = batch_for(algorithm)
-    batch = jax.tree.map(lambda x: np.concatenate([x] * 16), batch)
-
-    def working_memory(chunks: int) -> int:
-        ppo = PPOConfig(active_masks=False, minibatch_chunks=chunks)
-        gradient = jax.jit(lambda p: minibatch_gradient(algorithm.loss, p, batch, ppo))
-        return gradient.lower(params).compile().memory_analysis().temp_size_in_bytes
-
-    assert working_memory(8) < 0.5 * working_memory(1)
