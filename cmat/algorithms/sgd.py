@@ -43,7 +43,6 @@ def minibatch_sgd(
     ran, and `epochs_run` says how many did. B must be divisible by `ppo.num_minibatches`
     (`TrainConfig.validate` checks it).
     """
-
     def minibatch_step(
         carry: tuple[Params, Any], minibatch: Batch
     ) -> tuple[tuple[Params, Any], Metrics]:
