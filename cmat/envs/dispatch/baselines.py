@@ -1,0 +1,111 @@
+"""The classical dispatch policies every dispatch team compares against, as functions of the
+environment's state that return the fleet's actions [n] (stay 0, take candidate k as 1 + k).
+
+- `random`: each vehicle draws uniformly among its legal actions (stay, take a feasible
+  candidate, reposition).
+- `greedy`: orders in arrival order (longest waiting first, then slot order) each go to the
+  nearest idle vehicle that has them among its candidates and is still free (ties to the lower
+  vehicle index); no repositioning.
+- `hungarian`: per step, a maximum matching of idle vehicles to open orders with the least
+  total pickup time among maximum matchings (`scipy.optimize.linear_sum_assignment` on the
+  pickup minutes, infeasible pairs at a cost above any sum of feasible ones); no
+  repositioning. A vehicle may only take one of its K candidates (the environment's action
+  space), so the matching is over those pairs.
+
+`greedy` and `hungarian` run on the host (NumPy, SciPy) between jitted environment steps;
+`evaluate` steps a batch of episodes that way and returns the operator's metrics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from cmat.envs.dispatch.env import DispatchEnv, DispatchState, episode_metrics
+from cmat.errors import CmatError
+
+Candidates = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""One episode's (candidates [n, K] order slots, their pickup minutes [n, K], feasible
+[n, K] bool, the order slots' minutes waited [O])."""
+
+
+def greedy_plan(candidates: np.ndarray, pickup: np.ndarray, ok: np.ndarray,
+                waited: np.ndarray) -> np.ndarray:
+    """Greedy nearest-vehicle actions [n] for one episode's state (module docstring)."""
+    vehicle, k = np.nonzero(ok)
+    order = candidates[vehicle, k]
+    ranked = np.lexsort((vehicle, pickup[vehicle, k], order, -waited[order]))
+    actions = np.zeros(candidates.shape[0], np.int32)
+    taken: set[int] = set()
+    for index in ranked:
+        v, o = vehicle[index], order[index]
+        if actions[v] == 0 and o not in taken:
+            actions[v] = 1 + k[index]
+            taken.add(int(o))
+    return actions
+
+
+def hungarian_plan(candidates: np.ndarray, pickup: np.ndarray, ok: np.ndarray,
+                   waited: np.ndarray) -> np.ndarray:
+    """Hungarian actions [n] for one episode's state (module docstring)."""
+    actions = np.zeros(candidates.shape[0], np.int32)
+    vehicle, k = np.nonzero(ok)
+    if vehicle.size == 0:
+        return actions
+    rows, row_of = np.unique(vehicle, return_inverse=True)
+    columns, column_of = np.unique(candidates[vehicle, k], return_inverse=True)
+    feasible_cost = pickup[vehicle, k].astype(np.float64)
+    infeasible = feasible_cost.sum() + 1.0
+    cost = np.full((rows.size, columns.size), infeasible)
+    cost[row_of, column_of] = feasible_cost
+    choice = np.full((rows.size, columns.size), -1)
+    choice[row_of, column_of] = k
+    matched_rows, matched_columns = linear_sum_assignment(cost)
+    real = cost[matched_rows, matched_columns] < infeasible
+    actions[rows[matched_rows[real]]] = 1 + choice[matched_rows[real], matched_columns[real]]
+    return actions
+
+
+HOST_POLICIES: dict[str, Callable[..., np.ndarray]] = {
+    "greedy": greedy_plan, "hungarian": hungarian_plan,
+}
+POLICIES = ("random", *HOST_POLICIES)
+"""Every baseline `evaluate` accepts."""
+
+
+def evaluate(env: DispatchEnv, policy: str, episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """`episodes` episodes of `policy` (`POLICIES`) from keys of `seed`: per episode, the return
+    (`episode_return`) and the operator's metrics (`episode_metrics`), each an array
+    [episodes]. Raises CmatError for an unknown policy or a number of episodes below 1."""
+    if policy not in POLICIES:
+        raise CmatError(f"unknown dispatch baseline {policy!r}; available: {', '.join(POLICIES)}")
+    if episodes < 1:
+        raise CmatError(f"episodes must be at least 1, got {episodes}")
+    reset_keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    state, timestep = jax.jit(jax.vmap(env.reset))(reset_keys)
+    step = jax.jit(jax.vmap(env.step_in_episode))
+    random_actions = jax.jit(lambda key, mask: jax.random.categorical(
+        key, jnp.where(mask, 0.0, -jnp.inf)).astype(jnp.int32))
+    returns = np.zeros(episodes)
+    key = jax.random.PRNGKey(seed + 1)
+    for _ in range(env.episode_minutes):
+        key, act_key, step_key = jax.random.split(key, 3)
+        if policy == "random":
+            actions = random_actions(act_key, timestep.action_mask)
+        else:
+            actions = jnp.asarray(np.stack([
+                HOST_POLICIES[policy](*view) for view in host_views(state)]))
+        state, timestep = step(jax.random.split(step_key, episodes), state, actions)
+        returns += np.asarray(timestep.reward)
+    return {"episode_return": returns, **episode_metrics(state.stats, env.episode_minutes)}
+
+
+def host_views(state: DispatchState) -> list[Candidates]:
+    """Each episode's `Candidates` of a batched state, as NumPy arrays."""
+    fields = [np.asarray(x) for x in (state.candidates, state.candidate_pickup,
+                                      state.candidate_ok, state.order_waited)]
+    return [(c, p, o, w) for c, p, o, w in zip(*fields)]
