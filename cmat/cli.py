@@ -59,6 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     train = commands.add_parser("train", help="train a new run or resume one")
     train.add_argument("--env", help="environment id (matrix:NAME, smax:SCENARIO, mpe:NAME, "
                        "jumanji:TASK, mabrax:TASK, "
+                       "fleet dispatch: dispatch:CITY-N-LEVEL (e.g. dispatch:grid-100-mid), "
                        "your own: jax:package.module:factory; "
                        "host: mamujoco:SCENARIO-CONF, grf:SCENARIO, "
                        "pettingzoo:package.module:factory; default matrix:fig1, the "

@@ -187,9 +187,9 @@ class TrainConfig:
 
     env: str = "matrix:fig1"
     """Environment id: matrix:NAME, smax:SCENARIO, mpe:NAME, jumanji:TASK (RWARE, LBF),
-    mabrax:TASK or a user's jax:package.module:factory (in-graph: a cmat MarlEnv or a JaxMARL
-    MultiAgentEnv), or a host environment: pettingzoo:package.module:factory,
-    mamujoco:SCENARIO-CONF or grf:SCENARIO."""
+    mabrax:TASK, dispatch:CITY-N-LEVEL (fleet dispatch) or a user's
+    jax:package.module:factory (in-graph: a cmat MarlEnv or a JaxMARL MultiAgentEnv), or a host
+    environment: pettingzoo:package.module:factory, mamujoco:SCENARIO-CONF or grf:SCENARIO."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
     algo: str = "cmat"

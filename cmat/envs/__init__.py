@@ -54,9 +54,10 @@ class AgentIdWrapper:
 
 
 def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
-    """Build `matrix:NAME`, `smax:SCENARIO`, `mpe:NAME`, `jumanji:TASK`, `mabrax:TASK` or a
-    user's `jax:package.module:factory` (`cmat.envs.user_jax`, which takes any option its
-    factory takes); `agent_id` appends one-hot agent ids."""
+    """Build `matrix:NAME`, `smax:SCENARIO`, `mpe:NAME`, `jumanji:TASK`, `mabrax:TASK`,
+    `dispatch:CITY-N-LEVEL` (`cmat.envs.dispatch`) or a user's `jax:package.module:factory`
+    (`cmat.envs.user_jax`, which takes any option its factory takes); `agent_id` appends one-hot
+    agent ids."""
     prefix, _, name = env_id.partition(":")
     factory: Callable[..., MarlEnv]
     if prefix == "matrix":
@@ -92,6 +93,11 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
 
         factory = partial(mabrax_envs.MabraxEnv, _choose("MABrax task", name, mabrax_envs.TASKS))
         options = mabrax_envs.OPTIONS
+    elif prefix == "dispatch":
+        from cmat.envs import dispatch
+
+        factory = partial(dispatch.make_task, name)
+        options = dispatch.OPTIONS
     elif prefix == "jax":
         from cmat.envs.user_jax import make_user_env
 

@@ -47,6 +47,17 @@ lr 2.5e-4 (Adam, eps 1e-5), 128 steps, 4 epochs of 2 minibatches, clip 0.2, entr
 coefficient 0.5, gradient norm 0.5; 16 envs × `update_batch_size` 2, whose gradients Mava
 averages, are 32 envs here; agent ids on (`add_agent_id: True`)."""
 
+DISPATCH_SETTINGS: dict[str, Any] = {
+    "rollout_length": 60, "num_envs": 8, "total_steps": 200_000, "eval_episodes": 8,
+    "network": {"consensus_iterations": 5},
+    "ppo": {"lr": 5e-4, "adam_eps": 1e-5, "epochs": 5, "num_minibatches": 1, "clip_eps": 0.2,
+            "ent_coef": 0.01, "max_grad_norm": 10.0},
+}
+"""The dispatch suite (`cmat.envs.dispatch`): one 60-minute episode per rollout in each of 8
+environments, m = 5 consensus iterations (the CMAT authors' ride-sharing code ran 1,000 vehicles
+with consensus length 5), 5 epochs at clip 0.2 (each sample is one vehicle's decision, and a
+fleet gives hundreds per step). The budget is per seed in environment steps (fleet minutes)."""
+
 
 @dataclass(frozen=True)
 class Suite:
@@ -74,6 +85,10 @@ SUITES: dict[str, Suite] = {
                      "Mava's ff_mappo/ff_sable defaults for Jumanji RWARE and LBF; its budget"),
     "mabrax": Suite(MAVA_SETTINGS,
                     "Mava's ff_mappo/ff_sable defaults, which it runs MABrax with; its budget"),
+    "dispatch": Suite(DISPATCH_SETTINGS,
+                      "cmat's dispatch suite: one episode per rollout, m = 5 as in the CMAT "
+                      "authors' ride-sharing code; budget and PPO settings measured "
+                      "(DISPATCH_SETTINGS)"),
     "jax": Suite({"total_steps": PAPER_BUDGET},
                  "a user's JAX env: the dataclass defaults; the paper's 1e7 steps"),
     "mamujoco": Suite(

@@ -6,7 +6,7 @@ N vehicles, one agent per vehicle (`cmat.envs.dispatch.env`).
 - N: 1 to 5,000 vehicles; the named sizes are 100, 250, 500 and 1,000 (`SIZES`).
 - LEVEL: the demand in orders per vehicle-hour (`DEMAND_LEVELS`).
 
-Episodes are 60 one-minute steps starting between 08:00 and 10:00 (a weekday for Manhattan).
+Episodes are 60 one-minute steps starting between 08:00 and 10:00 (Manhattan: a weekday).
 """
 
 from __future__ import annotations
@@ -31,16 +31,17 @@ SIZES = (100, 250, 500, 1000)
 TASK = re.compile(r"(grid|manhattan)-([1-9][0-9]{0,3})-(low|mid|high)")
 """A task name: CITY-N-LEVEL."""
 TASK_HELP = "CITY-N-LEVEL: CITY grid|manhattan, N vehicles 1-5000, LEVEL low|mid|high"
-CITY_OPTIONS = {"grid": ("grid_size", "hot_spots", "city_seed"), "manhattan": ("day",)}
+CITY_OPTIONS: dict[str, tuple[str, ...]] = {
+    "grid": ("grid_size", "hot_spots", "city_seed"), "manhattan": ()}
 ENV_OPTIONS = ("episode_minutes", "start_hour", "start_window", "patience", "candidates",
                "max_pickup", "fare_base", "fare_per_minute", "empty_cost", "expiry_penalty")
-OPTIONS = (*ENV_OPTIONS, *CITY_OPTIONS["grid"], *CITY_OPTIONS["manhattan"])
-"""Every option a dispatch task accepts (`env_kwargs`); the city's own only for that city."""
+OPTIONS = (*ENV_OPTIONS, *CITY_OPTIONS["grid"])
+"""Every option a dispatch task accepts (`env_kwargs`); the grid's own only for the grid."""
 
 
 def make_task(name: str, **options: Any) -> DispatchEnv:
-    """The task `name` (CITY-N-LEVEL) with `options` (`DispatchEnv`'s and the city's:
-    `grid_size`, `hot_spots`, `city_seed` for the grid, `day` for Manhattan).
+    """The task `name` (CITY-N-LEVEL) with `options` (`DispatchEnv`'s, and `grid_size`,
+    `hot_spots`, `city_seed` for the grid).
 
     Raises CmatError for a malformed name, a size out of range, an option of the other city,
     or a missing or corrupt Manhattan table."""
@@ -58,5 +59,5 @@ def make_task(name: str, **options: Any) -> DispatchEnv:
         city = grid_city(size=options.pop("grid_size", 8), hot_spots=options.pop("hot_spots", 3),
                          seed=options.pop("city_seed", 0))
     else:
-        city = manhattan_city(options.pop("day", "weekday"))
+        city = manhattan_city()
     return DispatchEnv(f"dispatch:{name}", city, size, DEMAND_LEVELS[level], **options)

@@ -124,15 +124,12 @@ def grid_city(size: int = 8, minutes_per_block: int = 2, hot_spots: int = 3,
 
 
 @cache
-def manhattan_city(day: str = "weekday", path: Path = MANHATTAN_TABLE) -> City:
+def manhattan_city(path: Path = MANHATTAN_TABLE) -> City:
     """The 61 Manhattan taxi zones from the derived table at `path` (`data/README.md`): demand
-    by quarter hour of a `day` ("weekday" or "weekend"), travel minutes by hour (rounded to
-    whole minutes, at least 1), repositioning to the 4 zones nearest by travel time.
+    by quarter hour of a weekday (the source has no weekend data), travel minutes by hour
+    (rounded to whole minutes, at least 1), repositioning to the 4 zones nearest by travel time.
 
     Raises CmatError naming the file where it is missing, unreadable or malformed."""
-    days = {"weekday": 0, "weekend": 1}
-    if day not in days:
-        raise CmatError(f"dispatch day must be weekday or weekend, got {day!r}")
     try:
         with np.load(path) as table:
             demand = np.asarray(table["demand"], dtype=np.float32)
@@ -147,7 +144,7 @@ def manhattan_city(day: str = "weekday", path: Path = MANHATTAN_TABLE) -> City:
         raise CmatError(f"the Manhattan demand table {path} is corrupt ({error})") from None
     zones = coords.shape[0] if coords.ndim == 2 else -1
     well_formed = (
-        demand.ndim == 4 and demand.shape[:1] == (2,) and demand.shape[2:] == (zones, zones)
+        demand.ndim == 3 and demand.shape[1:] == (zones, zones)
         and travel.ndim == 3 and travel.shape[1:] == (zones, zones) and coords.shape[1:] == (2,)
         and np.isfinite(demand).all() and (demand >= 0).all() and demand.sum() > 0
         and np.isfinite(travel).all() and (travel > 0).all()
@@ -159,4 +156,4 @@ def manhattan_city(day: str = "weekday", path: Path = MANHATTAN_TABLE) -> City:
         )
     minutes = np.maximum(np.rint(travel), 1).astype(np.int32)
     neighbours, mask = nearest_neighbours(minutes)
-    return City("manhattan", minutes, coords, neighbours, mask, demand[days[day]])
+    return City("manhattan", minutes, coords, neighbours, mask, demand)
