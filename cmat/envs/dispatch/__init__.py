@@ -28,7 +28,7 @@ decide), `mid` is near capacity, `high` has more orders than the fleet can serve
 to take decides)."""
 SIZES = (100, 250, 500, 1000)
 """The fleet sizes the suite's documentation and experiments name."""
-TASK = re.compile(r"(grid|manhattan)-([1-9][0-9]{0,3})-(low|mid|high)")
+TASK = re.compile(r"(grid|manhattan)-([1-9][0-9]*)-(low|mid|high)")
 """A task name: CITY-N-LEVEL."""
 TASK_HELP = "CITY-N-LEVEL: CITY grid|manhattan, N vehicles 1-5000, LEVEL low|mid|high"
 CITY_OPTIONS: dict[str, tuple[str, ...]] = {

@@ -1,0 +1,255 @@
+"""The dispatch suite: conservation laws of the environment, the conflict rule, masks, demand
+against the table's rates, the baselines (Hungarian against brute force), bad input, and the
+suite through `cmat train`."""
+
+from __future__ import annotations
+
+import csv
+import itertools
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats as scipy_stats
+
+from cmat.cli import main
+from cmat.envs import make_env
+from cmat.envs.dispatch import DispatchEnv, episode_metrics, make_task
+from cmat.envs.dispatch.baselines import evaluate, greedy_plan, hungarian_plan
+from cmat.envs.dispatch.city import grid_city, manhattan_city
+from cmat.envs.dispatch.env import DispatchStats
+from cmat.envs.user_jax import check_marl_env
+from cmat.errors import CmatError
+
+pytestmark = pytest.mark.quick_compiles
+
+ENVS = 4
+
+
+def random_actions(key: jax.Array, mask: jax.Array) -> jax.Array:
+    return jax.random.categorical(key, jnp.where(mask, 0.0, -jnp.inf)).astype(jnp.int32)
+
+
+@partial(jax.jit, static_argnums=(0, 2))
+def rollout(env: DispatchEnv, key: jax.Array, steps: int) -> tuple[object, object]:
+    """`steps` minutes of `ENVS` episodes under the random legal policy, without resets:
+    every step's (state, timestep) stacked [steps, ENVS, ...]."""
+    reset_key, key = jax.random.split(key)
+    state, timestep = jax.vmap(env.reset)(jax.random.split(reset_key, ENVS))
+
+    def minute(carry, key):
+        state, timestep = carry
+        act_key, step_key = jax.random.split(key)
+        actions = random_actions(act_key, timestep.action_mask)
+        state, timestep = jax.vmap(env.step_in_episode)(
+            jax.random.split(step_key, ENVS), state, actions)
+        return (state, timestep), (state, timestep)
+
+    _, trace = jax.lax.scan(minute, (state, timestep), jax.random.split(key, steps))
+    return trace
+
+
+@pytest.fixture(scope="module")
+def busy_env() -> DispatchEnv:
+    return make_task("grid-30-high", grid_size=4, episode_minutes=40)
+
+
+def test_the_env_keeps_the_protocol_and_its_state_checkpoints(busy_env: DispatchEnv) -> None:
+    check_marl_env(busy_env, "dispatch:grid-30-high")
+    spec = busy_env.spec
+    assert (spec.num_agents, spec.action_dim, spec.max_episode_steps) == (30, 1 + 5 + 4, 40)
+
+
+def test_every_order_is_served_expired_open_or_dropped(busy_env: DispatchEnv) -> None:
+    states, timesteps = rollout(busy_env, jax.random.PRNGKey(0), 40)
+    s = states.stats
+    open_ = states.order_valid.sum(-1)
+    np.testing.assert_array_equal(s.generated, s.served + s.expired + open_ + s.dropped)
+    assert int(s.served[-1].sum()) > 50 and int(s.expired[-1].sum()) > 0
+    assert int(s.conflicts[-1].sum()) > 0
+    np.testing.assert_array_equal(s.wait_histogram.sum(-1), s.served)
+    assert bool(timesteps.done[-1].all()) and not bool(timesteps.done[:-1].any())
+
+
+def test_busy_vehicles_cannot_take_orders_and_claims_never_share_an_order(
+        busy_env: DispatchEnv) -> None:
+    states, _ = rollout(busy_env, jax.random.PRNGKey(1), 6)
+    state = jax.tree.map(lambda x: x[-1, 0], states)
+    busy = np.asarray(state.busy) > 0
+    assert busy.any() and (~busy).any()
+    greedy_claims = jnp.ones(busy_env.vehicles, jnp.int32)  # everyone claims its nearest order
+    after, _ = busy_env.step_in_episode(jax.random.PRNGKey(2), state, greedy_claims)
+
+    np.testing.assert_array_equal(np.asarray(after.zone)[busy], np.asarray(state.zone)[busy])
+    np.testing.assert_array_equal(np.asarray(after.busy)[busy], np.asarray(state.busy)[busy] - 1)
+    claiming = ~busy & np.asarray(state.candidate_ok[:, 0])
+    claimed = np.asarray(state.candidates[:, 0])[claiming]
+    pickups = np.asarray(state.candidate_pickup[:, 0])[claiming]
+    served = int(after.stats.served - state.stats.served)
+    assert served == len(set(claimed.tolist()))
+    assert int(after.stats.conflicts - state.stats.conflicts) == claimed.size - served
+    taken = np.asarray(after.busy)[claiming] > 0
+    for order in set(claimed.tolist()):
+        rivals = np.flatnonzero(claimed == order)
+        winner = rivals[np.lexsort((rivals, pickups[rivals]))[0]]  # nearest, then lower index
+        assert taken[rivals].tolist() == [r == winner for r in rivals]
+
+
+def test_masked_actions_are_stays(busy_env: DispatchEnv) -> None:
+    states, timesteps = rollout(busy_env, jax.random.PRNGKey(3), 6)
+    state = jax.tree.map(lambda x: x[-1, 0], states)
+    mask = np.asarray(timesteps.action_mask[-1, 0])
+    forbidden = np.argmin(mask, axis=1)
+    assert (~mask[np.arange(busy_env.vehicles), forbidden]).any()
+    actions = np.where(mask[np.arange(busy_env.vehicles), forbidden], 0, forbidden)
+    after, _ = busy_env.step_in_episode(jax.random.PRNGKey(4), state, jnp.asarray(actions))
+    stayed, _ = busy_env.step_in_episode(jax.random.PRNGKey(4), state,
+                                         jnp.zeros(busy_env.vehicles, jnp.int32))
+    for a, b in zip(jax.tree.leaves(after), jax.tree.leaves(stayed)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_demand_matches_the_tables_rates() -> None:
+    env = make_task("manhattan-200-mid", episode_minutes=30, start_window=0.0)
+    states, _ = rollout(env, jax.random.PRNGKey(5), 30)
+    generated = int(states.stats.generated[-1].sum())
+    minutes = env.start_minute + np.arange(31)
+    expected = ENVS * env.rate_scale * env.city.demand.sum(axis=(1, 2))[
+        env.city.slot_of(minutes)].sum()
+    assert abs(generated - expected) < 4 * np.sqrt(expected), (generated, expected)
+
+    fresh = states.order_valid & (states.order_waited == 0)
+    origins = np.bincount(np.asarray(states.order_origin)[np.asarray(fresh)],
+                          minlength=env.city.num_zones)
+    table = env.city.demand[env.city.slot_of(minutes)].sum(axis=(0, 2))
+    seen = table > 0
+    expected_origins = table[seen] / table.sum() * origins.sum()
+    assert origins[~seen].sum() == 0
+    pooled = expected_origins >= 5
+    observed = np.append(origins[seen][pooled], origins[seen][~pooled].sum())
+    wanted = np.append(expected_origins[pooled], expected_origins[~pooled].sum())
+    assert scipy_stats.chisquare(observed, wanted).pvalue > 1e-4
+
+
+def test_the_rate_is_the_demand_level_per_vehicle_hour() -> None:
+    for name, per_hour in (("grid-100-low", 1.5), ("manhattan-250-high", 5.0)):
+        env = make_task(name)
+        window = env.start_minute + np.arange(env.start_choices + env.episode_minutes)
+        rates = env.rate_scale * env.city.demand.sum(axis=(1, 2))[env.city.slot_of(window)]
+        assert rates.mean() * 60 / env.vehicles == pytest.approx(per_hour, rel=1e-6)
+
+
+def brute_force(candidates: np.ndarray, pickup: np.ndarray, ok: np.ndarray) -> tuple[int, int]:
+    """(most orders matched, least total pickup among such plans) over every plan."""
+    best = (0, 0)
+    options = [[0, *(1 + np.flatnonzero(row)).tolist()] for row in ok]
+    for plan in itertools.product(*options):
+        orders = [candidates[v, a - 1] for v, a in enumerate(plan) if a]
+        if len(orders) == len(set(orders)):
+            cost = sum(int(pickup[v, a - 1]) for v, a in enumerate(plan) if a)
+            best = max(best, (len(orders), -cost))
+    return best[0], -best[1]
+
+
+def plan_value(actions: np.ndarray, candidates: np.ndarray, pickup: np.ndarray,
+               ok: np.ndarray) -> tuple[int, int]:
+    taking = np.flatnonzero(actions)
+    k = actions[taking] - 1
+    assert ok[taking, k].all()
+    orders = candidates[taking, k]
+    assert len(set(orders.tolist())) == orders.size
+    return int(orders.size), int(pickup[taking, k].sum())
+
+
+def test_hungarian_equals_brute_force_and_greedy_is_legal() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(60):
+        vehicles, k, orders = rng.integers(1, 6), rng.integers(1, 4), rng.integers(1, 6)
+        candidates = np.stack([rng.choice(orders + 3, k, replace=False) for _ in range(vehicles)])
+        pickup = rng.integers(1, 15, (vehicles, k))
+        ok = rng.random((vehicles, k)) < 0.7
+        waited = rng.integers(0, 5, orders + 3)
+        hungarian = hungarian_plan(candidates, pickup, ok, waited)
+        assert plan_value(hungarian, candidates, pickup, ok) == brute_force(candidates, pickup, ok)
+        plan_value(greedy_plan(candidates, pickup, ok, waited), candidates, pickup, ok)
+
+
+def test_episode_metrics_from_counts() -> None:
+    stats = DispatchStats(
+        generated=np.array(10), served=np.array(8), expired=np.array(1), dropped=np.array(0),
+        revenue=np.array(80.0), wait_minutes=np.array(20),
+        wait_histogram=np.array([0, 2, 3, 1, 1, 1]), claims=np.array(12),
+        conflicts=np.array(4), empty_minutes=np.array(30), occupied_minutes=np.array(90),
+    )
+    metrics = episode_metrics(stats, 4)
+    assert metrics["service_rate"] == pytest.approx(0.8)
+    assert metrics["mean_wait"] == pytest.approx(2.5)
+    assert metrics["p95_wait"] == 5  # 7 of 8 waits are at most 4 minutes: 87.5% < 95%
+    assert metrics["empty_share"] == pytest.approx(0.25)
+    assert metrics["conflicts_per_step"] == pytest.approx(1.0)
+
+
+def test_matching_baselines_beat_random_and_never_conflict() -> None:
+    env = make_task("grid-40-high", grid_size=5, episode_minutes=30)
+    results = {policy: evaluate(env, policy, episodes=4, seed=7)
+               for policy in ("random", "greedy", "hungarian")}
+    for policy in ("greedy", "hungarian"):
+        assert results[policy]["conflicts_per_step"].sum() == 0
+        assert results[policy]["episode_return"].mean() > results["random"]["episode_return"].mean()
+    assert results["random"]["conflicts_per_step"].mean() > 0
+
+
+@pytest.mark.parametrize("env_id, kwargs, message", [
+    ("dispatch:grid-100", {}, "unknown dispatch task"),
+    ("dispatch:paris-100-mid", {}, "unknown dispatch task"),
+    ("dispatch:grid-0-mid", {}, "unknown dispatch task"),
+    ("dispatch:grid-9999-mid", {}, "at most 5000 vehicles"),
+    ("dispatch:grid-10-mid", {"patience": 0}, "patience must be an integer"),
+    ("dispatch:grid-10-mid", {"candidates": 2.5}, "candidates must be an integer"),
+    ("dispatch:grid-10-mid", {"grid_size": 1}, "grid size"),
+    ("dispatch:manhattan-10-mid", {"hot_spots": 2}, "belongs to the grid city"),
+    ("dispatch:grid-10-mid", {"seats": 2}, "unknown option 'seats'"),
+])
+def test_bad_tasks_and_options_are_one_line_errors(env_id: str, kwargs: dict[str, object],
+                                                   message: str) -> None:
+    with pytest.raises(CmatError, match=message) as error:
+        make_env(env_id, **kwargs)
+    assert "\n" not in str(error.value)
+
+
+def test_a_missing_or_corrupt_table_is_a_one_line_error(tmp_path: Path) -> None:
+    with pytest.raises(CmatError, match="is missing"):
+        manhattan_city(tmp_path / "absent.npz")
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises(CmatError, match="is corrupt"):
+        manhattan_city(garbage)
+    wrong = tmp_path / "wrong.npz"
+    np.savez(wrong, demand=np.ones((96, 3, 3)), travel_minutes=-np.ones((24, 3, 3)),
+             coords=np.zeros((3, 2)))
+    with pytest.raises(CmatError, match="is corrupt"):
+        manhattan_city(wrong)
+
+
+def test_grid_city_neighbours_are_adjacent_zones() -> None:
+    city = grid_city(size=4)
+    travel = city.travel_minutes[0]
+    for zone in range(16):
+        targets = city.neighbours[zone][city.neighbour_mask[zone]]
+        assert (travel[zone, targets] == 2).all()
+        assert len(targets) == [2, 3, 3, 2, 3, 4, 4, 3, 3, 4, 4, 3, 2, 3, 3, 2][zone]
+
+
+def test_cmat_train_on_a_dispatch_task(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    assert main(["train", "--env", "dispatch:grid-12-mid", "--algo", "mappo", "--steps", "480",
+                 "--set", "env_kwargs.grid_size=4", "eval_episodes=2", "--out", str(out)]) == 0
+    rows = list(csv.DictReader((out / "metrics.csv").open()))
+    assert rows and all(np.isfinite(float(r["episode_return"])) for r in rows
+                        if r["kind"] == "eval")
+    assert main(["train", "--env", "dispatch:grid-99999-mid", "--out",
+                 str(tmp_path / "bad")]) == 2
+    assert "at most 5000 vehicles" in capsys.readouterr().err.splitlines()[-1]
