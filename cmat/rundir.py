@@ -333,15 +333,13 @@ class RunDir:
         return sessions
 
     def append_metrics(self, rows: list[Row]) -> None:
-        """Append rows (NaN as `nan`, missing columns empty, other keys ignored) and sync them to
-        disk. A new file's columns are COLUMNS and the rows' per-run diagnostics
-        (`PER_RUN_PREFIXES`); later rows follow the header already written."""
+        """Append rows (NaN as `nan`, missing columns empty) and sync them to disk. A new file's
+        columns are COLUMNS and then every other key of the rows in the order they first give
+        them (per-run diagnostics, the algorithm's own metrics, the environment's episode
+        metrics); later rows follow the header already written, keys it lacks are left out."""
         buffer = io.StringIO()
         header = self.metrics_header()
-        columns = header or [
-            *COLUMNS,
-            *dict.fromkeys(key for row in rows for key in row if key.startswith(PER_RUN_PREFIXES)),
-        ]
+        columns = header or [*dict.fromkeys([*COLUMNS, *(key for row in rows for key in row)])]
         writer = csv.DictWriter(buffer, columns, extrasaction="ignore", lineterminator="\n")
         if not header:
             writer.writeheader()

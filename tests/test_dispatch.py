@@ -253,3 +253,16 @@ def test_cmat_train_on_a_dispatch_task(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["train", "--env", "dispatch:grid-99999-mid", "--out",
                  str(tmp_path / "bad")]) == 2
     assert "at most 5000 vehicles" in capsys.readouterr().err.splitlines()[-1]
+
+
+def test_evaluation_reports_the_operators_metrics_in_metrics_csv(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert main(["train", "--env", "dispatch:grid-8-high", "--algo", "mappo", "--steps", "240",
+                 "--set", "env_kwargs.grid_size=3", "env_kwargs.episode_minutes=20",
+                 "eval_episodes=3", "--out", str(out)]) == 0
+    evals = [r for r in csv.DictReader((out / "metrics.csv").open()) if r["kind"] == "eval"]
+    assert evals
+    for row in evals:
+        assert 0 < float(row["service_rate"]) <= 1 and float(row["revenue"]) > 0
+        assert 0 <= float(row["empty_share"]) <= 1 and float(row["conflicts_per_step"]) >= 0
+        assert float(row["mean_wait"]) <= float(row["p95_wait"]) + 1

@@ -184,7 +184,7 @@ def test_episode_returns_are_the_sums_of_rewards(
     env, _, _, records = rolled
     reward, done, won = records.timestep.reward, records.timestep.done, records.timestep.won
     quota = np.ones((NUM_ENVS, 1), np.int32)
-    tally = tally_start((NUM_ENVS, 1))
+    tally = tally_start((NUM_ENVS, 1), env.spec)
     for t in range(reward.shape[0]):
         tally = tally_step(tally, reward[t, :, None], done[t, :, None], won[t, :, None], quota)
     returns = tally_result(tally, quota, 1, env.spec)["episode_return"]

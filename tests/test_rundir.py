@@ -189,11 +189,12 @@ def test_metrics_rows_append_with_nan_as_nan(tmp_path: Path) -> None:
                          "win_rate": 0.5, "policy_loss": 0.25, "grad_norm": 3.0}])
     run.append_metrics(eval_rows([100], 2, win_rate=False))
     text = run.metrics_path.read_text()
-    assert text.splitlines()[0] == ",".join(COLUMNS)
+    assert text.splitlines()[0] == ",".join([*COLUMNS, "grad_norm"])
     assert text.count("kind,") == 1
     rows = run.read_metrics()
     assert [(r["kind"], r["seed"]) for r in rows] == [("train", "0"), ("eval", "0"), ("eval", "1")]
     assert rows[0]["episode_return"] == "nan" and rows[0]["policy_loss"] == "0.25"
+    assert rows[0]["grad_norm"] == "3.0" and rows[1]["grad_norm"] == ""
     assert rows[1]["win_rate"] == "nan" and rows[1]["value_loss"] == ""
 
 

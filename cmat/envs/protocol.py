@@ -31,6 +31,10 @@ class EnvSpec:
     state_dim: int = 0
     """Size of the environment's global state (`TimeStep.global_state`); 0 where it has none,
     and centralised critics that want one then read all agents' observations concatenated."""
+    episode_metrics: tuple[str, ...] = ()
+    """Names of the per-episode metrics the environment reports in `TimeStep.metrics` beside
+    the return (dispatch: service rate, revenue, waits, …); evaluation averages each over the
+    episodes it counts and metrics.csv gets a column for each."""
     agent_id: bool = False
     """Each observation ends with its agent's one-hot id [n] (`AgentIdWrapper`,
     `env_kwargs.agent_id`), so a network shared by the agents need not append one."""
@@ -56,6 +60,9 @@ class TimeStep(NamedTuple):
     global_state: jax.Array
     """[state_dim] float32: the environment's global state (SMAX: JaxMARL's world state);
     shape [0] where the environment has none."""
+    metrics: jax.Array | None = None
+    """[len(spec.episode_metrics)] float32: the values of the episode that the transition just
+    taken ended (read only where `done`); None where the spec declares no episode metrics."""
 
 
 class MarlEnv(Protocol):

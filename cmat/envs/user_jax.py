@@ -153,6 +153,7 @@ def _check_checkpointable(env_id: str, state: Any) -> None:
 SPEC_FIELD_KINDS: dict[str, tuple[type | tuple[type, ...], str]] = {
     "str": (str, "text"), "int": (numbers.Integral, "a whole number"),
     "bool": ((bool, np.bool_), "True or False"), "float": (numbers.Real, "a number"),
+    "tuple[str, ...]": (tuple, "a tuple of names"),
 }
 """Per annotation of an EnvSpec field: the accepted types and their name in errors."""
 
@@ -178,6 +179,8 @@ def _check_timestep(env_id: str, call: str, timestep: Any, spec: EnvSpec) -> Non
         "obs": ((n, spec.obs_dim), "floating"), "action_mask": ((n, spec.action_dim), "bool"),
         "reward": ((), "floating"), "done": ((), "bool"), "won": ((), "bool"),
         "alive": ((n,), "bool"), "global_state": ((spec.state_dim,), "floating"),
+        **({"metrics": ((len(spec.episode_metrics),), "floating")}
+           if spec.episode_metrics else {}),
     }
     for name, (shape, kind) in expected.items():
         value = getattr(timestep, name)

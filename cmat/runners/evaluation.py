@@ -26,12 +26,14 @@ from cmat.runners.collector import env_actions
 
 class EpisodeTally(NamedTuple):
     """Per slot [..., slots]: the return of the episode running, the summed return and wins of
-    the counted episodes, and how many episodes have ended."""
+    the counted episodes, how many episodes have ended, and the summed episode metrics of the
+    counted episodes that ended [..., slots, M] (`EnvSpec.episode_metrics`)."""
 
     running: Any
     total: Any
     wins: Any
     finished: Any
+    metrics: Any
 
 
 def split_evenly(total: int, parts: int) -> np.ndarray:
@@ -39,15 +41,18 @@ def split_evenly(total: int, parts: int) -> np.ndarray:
     return np.diff(np.linspace(0, total, parts + 1).round().astype(int))
 
 
-def tally_start(shape: tuple[int, ...], xp: Any = np) -> EpisodeTally:
+def tally_start(shape: tuple[int, ...], spec: EnvSpec, xp: Any = np) -> EpisodeTally:
     zeros = xp.zeros(shape, xp.float32)
-    return EpisodeTally(zeros, zeros, zeros, xp.zeros(shape, xp.int32))
+    metrics = xp.zeros((*shape, len(spec.episode_metrics)), xp.float32)
+    return EpisodeTally(zeros, zeros, zeros, xp.zeros(shape, xp.int32), metrics)
 
 
 def tally_step(
-    tally: EpisodeTally, reward: Any, done: Any, won: Any, quota: Any, xp: Any = np
+    tally: EpisodeTally, reward: Any, done: Any, won: Any, quota: Any, xp: Any = np,
+    metrics: Any = None,
 ) -> EpisodeTally:
-    """The tally after one step of every slot with these rewards, episode ends and wins."""
+    """The tally after one step of every slot with these rewards, episode ends, wins and
+    episode metrics ([..., slots, M]; None where the environment reports none)."""
     running = tally.running + reward
     counted = done & (tally.finished < quota)
     return EpisodeTally(
@@ -55,19 +60,26 @@ def tally_step(
         total=(tally.total + xp.where(counted, running, 0.0)).astype(xp.float32),
         wins=(tally.wins + (counted & won)).astype(xp.float32),
         finished=tally.finished + done,
+        metrics=tally.metrics if metrics is None else (
+            tally.metrics + xp.where(counted[..., None], metrics, 0.0)).astype(xp.float32),
     )
 
 
 def tally_result(
     tally: EpisodeTally, quota: Any, episodes: int, spec: EnvSpec, xp: Any = np
 ) -> dict[str, Any]:
-    """Mean return and win rate (NaN where the environment has none) over the last axis."""
+    """Mean return and win rate (NaN where the environment has none) over the last axis, and
+    each episode metric's mean over the counted episodes that ended (NaN where none did)."""
     total = tally.total + xp.where(tally.finished < quota, tally.running, 0.0)
     win_rate = tally.wins.sum(axis=-1) / episodes
+    ended = xp.minimum(tally.finished, quota).sum(axis=-1)[..., None]
+    metrics = xp.where(ended > 0, tally.metrics.sum(axis=-2) / xp.maximum(ended, 1), xp.nan)
     return {
         "episode_return": (total.sum(axis=-1) / episodes).astype(xp.float32),
         "win_rate": (win_rate if spec.has_win_rate else xp.full_like(win_rate, xp.nan))
         .astype(xp.float32),
+        **{name: metrics[..., index].astype(xp.float32)
+           for index, name in enumerate(spec.episode_metrics)},
     }
 
 
@@ -92,10 +104,11 @@ def evaluate_in_graph(
         env_state, timestep = jax.vmap(env.step)(
             jax.random.split(key, episodes), env_state, env_actions(spec, actions)
         )
-        tally = tally_step(tally, timestep.reward, timestep.done, timestep.won, quota, jnp)
+        tally = tally_step(tally, timestep.reward, timestep.done, timestep.won, quota, jnp,
+                           timestep.metrics)
         return (env_state, timestep, tally, memory), None
 
-    carry = (env_state, timestep, tally_start((episodes,), jnp), memory)
+    carry = (env_state, timestep, tally_start((episodes,), spec, jnp), memory)
     (_, _, tally, _), _ = jax.lax.scan(
         step, carry, jax.random.split(rng, spec.max_episode_steps)
     )

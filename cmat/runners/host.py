@@ -266,7 +266,7 @@ class HostTrainer:
         seeds = [s for k in range(config.seeds) for s in env_seeds(base + k, 1, slots)]
         timestep = self._eval_pool.reset(seeds)
         quota = np.tile(split_evenly(episodes, slots), (config.seeds, 1))
-        tally = tally_start((config.seeds, slots))
+        tally = tally_start((config.seeds, slots), spec)
         memory = initial_memories(self.learner_setup.algorithm, config.seeds, slots)
         for _ in range(int(quota.max()) * spec.max_episode_steps):
             if np.all(tally.finished >= quota):

@@ -282,7 +282,7 @@ def log_scalars(writer: ScalarWriters, rows: list[Row], step: int, steps_per_sec
             if key in ("kind", "seed", "env_steps") or math.isnan(float(value)):
                 continue
             namespace = (
-                row["kind"] if key in RESULT_KEYS
+                row["kind"] if key in RESULT_KEYS or row["kind"] == "eval"
                 else "diagnostics" if key in DIAGNOSTIC_COLUMNS or key.startswith(PER_RUN_PREFIXES)
                 else "losses"
             )

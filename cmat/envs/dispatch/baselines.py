@@ -101,7 +101,8 @@ def evaluate(env: DispatchEnv, policy: str, episodes: int, seed: int = 0) -> dic
                 HOST_POLICIES[policy](*view) for view in host_views(state)]))
         state, timestep = step(jax.random.split(step_key, episodes), state, actions)
         returns += np.asarray(timestep.reward)
-    return {"episode_return": returns, **episode_metrics(state.stats, env.episode_minutes)}
+    metrics = episode_metrics(state.stats, env.episode_minutes)
+    return {"episode_return": returns, **{k: np.asarray(v) for k, v in metrics.items()}}
 
 
 def host_views(state: DispatchState) -> list[Candidates]:

@@ -216,6 +216,7 @@ class DispatchEnv:
             max_episode_steps=episode_minutes,
             has_win_rate=False,
             state_dim=3 * zones + 3,
+            episode_metrics=METRICS,
         )
 
     def reset(self, key: jax.Array) -> tuple[DispatchState, TimeStep]:
@@ -399,32 +400,34 @@ class DispatchEnv:
             obs=obs.astype(jnp.float32), action_mask=mask, reward=reward, done=done,
             won=jnp.asarray(False), alive=jnp.ones(n, bool),
             global_state=jnp.concatenate([picture, busy_vehicles, clock]).astype(jnp.float32),
+            metrics=jnp.stack([value.astype(jnp.float32) for value in
+                               episode_metrics(state.stats, state.minute).values()]),
         )
 
 
 METRICS = ("service_rate", "revenue", "mean_wait", "p95_wait", "expired", "empty_share",
            "conflicts_per_step")
-"""The fleet operator's metrics of an episode (`episode_metrics`)."""
+"""The fleet operator's metrics of an episode (`episode_metrics`; `EnvSpec.episode_metrics`)."""
 
 
-def episode_metrics(stats: DispatchStats, steps: int | jax.Array) -> dict[str, np.ndarray]:
-    """The operator's metrics of episodes whose counters are `stats` (any leading batch axes)
-    after `steps` minutes: service rate (served / generated), revenue (dollars), mean and 95th-
-    percentile minutes from arrival to pickup of the served orders (NaN where none was served;
-    the percentile in whole minutes, the lowest bin whose cumulative count reaches 95%),
-    expired orders, empty-driving share of the driven minutes, conflicts per step."""
-    as_np = jax.tree.map(np.asarray, stats)
-    served = as_np.served.astype(np.float64)
-    cumulative = np.cumsum(as_np.wait_histogram, axis=-1)
-    p95 = np.argmax(cumulative >= 0.95 * cumulative[..., -1:], axis=-1).astype(np.float64)
-    driven = (as_np.empty_minutes + as_np.occupied_minutes).astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return {
-            "service_rate": served / as_np.generated,
-            "revenue": as_np.revenue.astype(np.float64),
-            "mean_wait": as_np.wait_minutes / served,
-            "p95_wait": np.where(served > 0, p95, np.nan),
-            "expired": as_np.expired.astype(np.float64),
-            "empty_share": as_np.empty_minutes / driven,
-            "conflicts_per_step": as_np.conflicts / np.asarray(steps, np.float64),
-        }
+def episode_metrics(stats: DispatchStats, steps: Any) -> dict[str, jax.Array]:
+    """The operator's metrics, float32 with `stats`' leading batch axes, of episodes whose
+    counters are `stats` after `steps` minutes: service rate (served / generated), revenue
+    (dollars), mean and 95th-percentile minutes from arrival to pickup of the served orders
+    (NaN where none was served; the percentile in whole minutes, the lowest bin whose
+    cumulative count reaches 95%), expired orders, empty-driving share of the driven minutes
+    (NaN where nothing drove), conflicts per step."""
+    served = stats.served.astype(jnp.float32)
+    cumulative = jnp.cumsum(stats.wait_histogram, axis=-1)
+    p95 = jnp.argmax(cumulative >= 0.95 * cumulative[..., -1:], axis=-1)
+    driven = (stats.empty_minutes + stats.occupied_minutes).astype(jnp.float32)
+    return {
+        "service_rate": served / jnp.maximum(stats.generated, 1),
+        "revenue": stats.revenue.astype(jnp.float32),
+        "mean_wait": jnp.where(served > 0, stats.wait_minutes / jnp.maximum(served, 1), jnp.nan),
+        "p95_wait": jnp.where(served > 0, p95, jnp.nan),
+        "expired": stats.expired.astype(jnp.float32),
+        "empty_share": jnp.where(driven > 0, stats.empty_minutes / jnp.maximum(driven, 1),
+                                 jnp.nan),
+        "conflicts_per_step": stats.conflicts / jnp.maximum(jnp.asarray(steps, jnp.float32), 1),
+    }
