@@ -88,10 +88,22 @@ def build_parser() -> argparse.ArgumentParser:
                             "environment's agents and actions; train nothing")
     train.set_defaults(handler=train_command)
 
-    evaluate = commands.add_parser("eval", help="greedy evaluation of a run's checkpoint")
-    evaluate.add_argument("--run", type=Path, required=True, metavar="DIR", help="run directory")
+    evaluate = commands.add_parser(
+        "eval", help="greedy evaluation of a run's checkpoint, or of a classical dispatch "
+                     "baseline (--baseline)")
+    evaluate.add_argument("--run", type=Path, metavar="DIR",
+                          help="run directory (with --baseline: evaluate the baseline on the "
+                               "run's environment and options)")
     evaluate.add_argument("--episodes", type=int,
-                          help="episodes per seed (default: the run's eval_episodes)")
+                          help="episodes per seed (default: the run's eval_episodes; 32 for a "
+                               "baseline without --run)")
+    evaluate.add_argument("--baseline", metavar="NAME",
+                          help="dispatch tasks only: evaluate the classical policy NAME "
+                               "(random, greedy, hungarian) instead of a checkpoint")
+    evaluate.add_argument("--env", metavar="ID",
+                          help="with --baseline and no --run: the dispatch task to evaluate on")
+    evaluate.add_argument("--seed", type=int, default=0,
+                          help="with --baseline: the seed of its episodes (default 0)")
     evaluate.add_argument(
         "--iterations", type=int, metavar="K",
         help="CMAT only: run the decoder for K consensus iterations instead of the trained m "
@@ -338,6 +350,11 @@ def train_into(
 
 
 def eval_command(args: argparse.Namespace) -> None:
+    if args.baseline is not None:
+        baseline_command(args)
+        return
+    if args.run is None:
+        raise CmatError("cmat eval needs --run DIR (or --baseline NAME with --env ID or --run)")
     run_dir = RunDir.open(args.run)
     config = run_dir.config()
     if args.episodes is not None and not 0 < args.episodes <= INT32_MAX:
@@ -365,11 +382,42 @@ def eval_command(args: argparse.Namespace) -> None:
     result = trainer.evaluate(state, episodes, seed=config.seed)
     per_seed = [
         {"seed": config.seed + index,
-         "episode_return": json_number(result["episode_return"][index]),
-         "win_rate": json_number(result["win_rate"][index])}
+         **{name: json_number(values[index]) for name, values in result.items()}}
         for index in range(config.seeds)
     ]
     print(json.dumps({**extra, "per_seed": per_seed}))
+
+
+def baseline_command(args: argparse.Namespace) -> None:
+    """Evaluate a classical dispatch policy (`cmat.envs.dispatch.baselines`) on `--run`'s
+    environment and options or on `--env`, printing what `eval` prints for a run."""
+    if (args.run is None) == (args.env is None):
+        raise CmatError("--baseline needs exactly one of --env ID and --run DIR")
+    if args.iterations is not None:
+        raise CmatError("--iterations applies to cmat runs only, not to a baseline")
+    if args.run is not None:
+        config = RunDir.open(args.run).config()
+        env_id, env_kwargs, episodes = config.env, config.env_kwargs, config.eval_episodes
+    else:
+        env_id, env_kwargs, episodes = args.env, {}, 32
+    episodes = args.episodes if args.episodes is not None else episodes
+    if not 0 < episodes <= 100_000:
+        raise CmatError(f"--episodes must be in [1, 100,000] for a baseline, got {episodes:,}")
+    import numpy as np
+
+    from cmat.envs import make_env
+    from cmat.envs.dispatch import DispatchEnv
+    from cmat.envs.dispatch.baselines import evaluate as evaluate_baseline
+
+    env = make_env(env_id, **env_kwargs)
+    if not isinstance(env, DispatchEnv):
+        raise CmatError(f"--baseline evaluates dispatch tasks only, not {env_id}")
+    result = evaluate_baseline(env, args.baseline, episodes, seed=args.seed)
+    summary = {name: json_number(float(values[~np.isnan(values)].mean())
+                                 if (~np.isnan(values)).any() else math.nan)
+               for name, values in result.items()}
+    print(json.dumps({"baseline": args.baseline, "env": env_id, "episodes_per_seed": episodes,
+                      "per_seed": [{"seed": args.seed, **summary}]}))
 
 
 def with_eval_iterations(

@@ -28,10 +28,10 @@ The wheel's data files
 Derivation
 ----------
 1. ``zones``: the geojson's LocationIDs, sorted ascending; trips and speeds use the same 61.
-2. ``demand`` (weekdays; the package has no Saturday or Sunday data): pyhailing uses the counts only as sampling weights (an episode
-   draws a day of week ∝ its total, then a fixed number of requests ∝ ``n_trips``), and
-   neither its code nor its documentation states the period they cover; its README says
-   "based on data from business days in 2018". The counts are read as totals over all 2018
+2. ``demand`` (weekdays; the package has no Saturday or Sunday data): pyhailing uses the
+   counts only as sampling weights (an episode draws a day of week ∝ its total, then a fixed
+   number of requests ∝ ``n_trips``), and neither its code nor its documentation states the
+   period they cover; its README says "based on data from business days in 2018". The counts are read as totals over all 2018
    business days of each day of week: Monday–Friday minus the ten US federal holidays of
    2018 (all on weekdays), i.e. 46 Mondays, 51 Tuesdays, 51 Wednesdays, 51 Thursdays and 52
    Fridays (251 days). This is an inference, not documented by pyhailing: with it the daily

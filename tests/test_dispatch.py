@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import json
 from functools import partial
 from pathlib import Path
 
@@ -266,3 +267,22 @@ def test_evaluation_reports_the_operators_metrics_in_metrics_csv(tmp_path: Path)
         assert 0 < float(row["service_rate"]) <= 1 and float(row["revenue"]) > 0
         assert 0 <= float(row["empty_share"]) <= 1 and float(row["conflicts_per_step"]) >= 0
         assert float(row["mean_wait"]) <= float(row["p95_wait"]) + 1
+
+
+def test_cmat_eval_runs_a_baseline_like_a_trained_policy(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", "--baseline", "hungarian", "--env", "dispatch:grid-10-high",
+                 "--episodes", "2", "--seed", "3"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["per_seed"][0]["seed"] == 3
+    assert set(printed["per_seed"][0]) >= {"episode_return", "service_rate", "conflicts_per_step"}
+    assert printed["per_seed"][0]["conflicts_per_step"] == 0
+    for argv, message in (
+        (["--baseline", "auction", "--env", "dispatch:grid-10-high"], "unknown dispatch baseline"),
+        (["--baseline", "greedy", "--env", "matrix:fig1"], "dispatch tasks only"),
+        (["--baseline", "greedy"], "exactly one of --env ID and --run DIR"),
+        (["--baseline", "greedy", "--env", "dispatch:grid-10-high", "--episodes", "0"],
+         "--episodes must be in"),
+    ):
+        assert main(["eval", *argv]) == 2
+        assert message in capsys.readouterr().err

@@ -67,11 +67,11 @@ class City:
 
     def slot_of(self, minute_of_day: np.ndarray) -> np.ndarray:
         """Demand slot of each minute of the day (wrapping past midnight)."""
-        return (minute_of_day % 1440) * self.demand.shape[0] // 1440
+        return np.asarray((minute_of_day % 1440) * self.demand.shape[0] // 1440)
 
     def hour_of(self, minute_of_day: np.ndarray) -> np.ndarray:
         """Travel-time part of the day of each minute of the day (wrapping past midnight)."""
-        return (minute_of_day % 1440) * self.travel_minutes.shape[0] // 1440
+        return np.asarray((minute_of_day % 1440) * self.travel_minutes.shape[0] // 1440)
 
 
 def nearest_neighbours(travel_minutes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -43,12 +43,11 @@ pickup waits; conflicts; empty and occupied driving minutes) is counted in the s
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from cmat.envs.autoreset import auto_reset
 from cmat.envs.dispatch.city import City
@@ -61,12 +60,12 @@ episode progress."""
 ORDER_FEATURES = 7
 """Per-candidate features: feasible, pickup minutes / 10, trip minutes / 30, fare / 30, waited /
 patience, destination position (2)."""
+INT32_MAX = 2**31 - 1
 UNREACHABLE = 1 << 20
 """Pickup minutes of an empty order slot in the candidate search (no real pickup is that long)."""
 
 
-@struct.dataclass
-class DispatchStats:
+class DispatchStats(NamedTuple):
     """Counts and sums of one episode so far (scalars unless stated)."""
 
     generated: jax.Array
@@ -91,8 +90,7 @@ class DispatchStats:
     """Vehicle-minutes driven with a passenger."""
 
 
-@struct.dataclass
-class DispatchState:
+class DispatchState(NamedTuple):
     """The fleet, the order book and the episode's clock; n vehicles, O order slots, K
     candidates per vehicle."""
 
@@ -269,7 +267,7 @@ class DispatchEnv:
         pickup = jnp.take_along_axis(state.candidate_pickup, choice, axis=1)[:, 0]
         claim = (idle & (action >= 1) & (action <= k_max)
                  & jnp.take_along_axis(state.candidate_ok, choice, axis=1)[:, 0])
-        priority = jnp.where(claim, pickup * n + vehicle, jnp.iinfo(jnp.int32).max)
+        priority = jnp.where(claim, pickup * n + vehicle, INT32_MAX)
         claimed = jnp.where(claim, order, orders)
         best = jax.ops.segment_min(priority, claimed, num_segments=orders + 1)
         win = claim & (priority == best[claimed])
@@ -300,7 +298,7 @@ class DispatchEnv:
                   - self.expiry_penalty * jnp.sum(expired)) / n
 
         stats = state.stats
-        stats = stats.replace(
+        stats = stats._replace(
             served=stats.served + jnp.sum(win), expired=stats.expired + jnp.sum(expired),
             revenue=stats.revenue + fares,
             wait_minutes=stats.wait_minutes + jnp.sum(jnp.where(win, wait, 0)),
@@ -310,7 +308,7 @@ class DispatchEnv:
             empty_minutes=stats.empty_minutes + empty_minutes,
             occupied_minutes=stats.occupied_minutes + occupied_minutes,
         )
-        state = state.replace(
+        state = state._replace(
             minute=state.minute + 1, zone=zone, busy=jnp.maximum(busy - 1, 0),
             empty_left=jnp.maximum(empty_left - 1, 0), order_valid=open_ & ~expired,
             order_waited=waited, stats=stats,
@@ -320,12 +318,14 @@ class DispatchEnv:
         return state, self._timestep(state, reward.astype(jnp.float32), done)
 
     def _slot(self, minute_of_day: jax.Array) -> jax.Array:
-        slots = self.city.demand.shape[0]
-        return (minute_of_day % 1440) * slots // 1440
+        slots: int = self.city.demand.shape[0]
+        slot: jax.Array = (minute_of_day % 1440) * slots // 1440
+        return slot
 
     def _hour(self, minute_of_day: jax.Array) -> jax.Array:
-        parts = self.city.travel_minutes.shape[0]
-        return (minute_of_day % 1440) * parts // 1440
+        parts: int = self.city.travel_minutes.shape[0]
+        hour: jax.Array = (minute_of_day % 1440) * parts // 1440
+        return hour
 
     def _arrive(self, key: jax.Array, state: DispatchState) -> DispatchState:
         """Poisson arrivals for the state's minute placed into free order slots."""
@@ -347,9 +347,9 @@ class DispatchEnv:
         trip = self._travel[self._hour(now)][origin, destination]
         fare = self.fare[0] + self.fare[1] * trip.astype(jnp.float32)
         stats = state.stats
-        stats = stats.replace(generated=stats.generated + count,
+        stats = stats._replace(generated=stats.generated + count,
                               dropped=stats.dropped + count - jnp.sum(placed))
-        return state.replace(
+        return state._replace(
             order_valid=state.order_valid | placed,
             order_origin=jnp.where(placed, origin, state.order_origin),
             order_destination=jnp.where(placed, destination, state.order_destination),
@@ -366,7 +366,7 @@ class DispatchEnv:
         negative, candidates = jax.lax.top_k(-pickup, self.num_candidates)
         candidate_pickup = -negative
         ok = (state.busy == 0)[:, None] & (candidate_pickup <= self.max_pickup)
-        return state.replace(candidates=candidates.astype(jnp.int32),
+        return state._replace(candidates=candidates.astype(jnp.int32),
                              candidate_pickup=candidate_pickup, candidate_ok=ok)
 
     def _timestep(self, state: DispatchState, reward: jax.Array, done: jax.Array) -> TimeStep:
