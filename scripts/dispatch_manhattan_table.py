@@ -31,15 +31,16 @@ Derivation
 2. ``demand`` (weekdays; the package has no Saturday or Sunday data): pyhailing uses the
    counts only as sampling weights (an episode draws a day of week ∝ its total, then a fixed
    number of requests ∝ ``n_trips``), and neither its code nor its documentation states the
-   period they cover; its README says "based on data from business days in 2018". The counts are read as totals over all 2018
-   business days of each day of week: Monday–Friday minus the ten US federal holidays of
-   2018 (all on weekdays), i.e. 46 Mondays, 51 Tuesdays, 51 Wednesdays, 51 Thursdays and 52
-   Fridays (251 days). This is an inference, not documented by pyhailing: with it the daily
-   totals rise smoothly from Monday to Friday (Monday 0.90 × Tuesday, the usual NYC pattern;
-   without the holidays Monday would be 0.81 × Tuesday), and the ~0.44 M trips a day inside
-   these 61 zones match 2018 yellow-taxi plus for-hire-vehicle volumes (yellow cabs alone
-   carried ~0.28 M a day city-wide). Each day of week's counts are divided by its number of
-   days, and the weekday table is the plain mean of the five per-day tables.
+   period they cover; its README says "based on data from business days in 2018". The counts
+   are read as totals over all 2018 business days of each day of week: Monday–Friday minus the
+   ten US federal holidays of 2018 (all on weekdays), i.e. 46 Mondays, 51 Tuesdays, 51
+   Wednesdays, 51 Thursdays and 52 Fridays (251 days). This is an inference, not documented by
+   pyhailing: with it the daily totals rise smoothly from Monday to Friday (Monday 0.90 ×
+   Tuesday, the usual NYC pattern; without the holidays Monday would be 0.81 × Tuesday), and
+   the ~0.44 M trips a day inside these 61 zones match 2018 yellow-taxi plus for-hire-vehicle
+   volumes (yellow cabs alone carried ~0.28 M a day city-wide). Each day of week's counts are
+   divided by its number of days, and the weekday table is the plain mean of the five per-day
+   tables.
 3. Zone centroids, as pyhailing computes them: it Delaunay-triangulates each polygon's vertices
    (which covers their convex hull) and takes the area-weighted mean of the triangles'
    centroids, i.e. the centroid of the convex hull of the vertices. Here: the hull (Andrew's

@@ -7,7 +7,8 @@ repositioning neighbours (actions K+1..K+R; `cmat.envs.dispatch.city.NEIGHBOURS`
 vehicle (on its way to a pickup, carrying a passenger or repositioning) may only stay. Each
 vehicle carries one passenger group at a time (no pooling; its `seats` are its busy state).
 
-The minute then runs in this order:
+Vehicles in one zone see the same orders, listed in a vehicle-specific order where pickup times
+tie (`DispatchEnv._observe`). The minute then runs in this order:
 
 1. Claims. Where several vehicles claim one order, the claimant with the shortest pickup time
    gets it, ties to the lower vehicle index; every other claim is a *conflict* (the paper's
@@ -61,8 +62,9 @@ ORDER_FEATURES = 7
 """Per-candidate features: feasible, pickup minutes / 10, trip minutes / 30, fare / 30, waited /
 patience, destination position (2)."""
 INT32_MAX = 2**31 - 1
-UNREACHABLE = 1 << 20
-"""Pickup minutes of an empty order slot in the candidate search (no real pickup is that long)."""
+UNREACHABLE = 1 << 12
+"""Pickup minutes of an empty order slot in the candidate search (longer real pickups count as
+one minute less; no city's travel times come near it)."""
 
 
 class DispatchStats(NamedTuple):
@@ -195,6 +197,9 @@ class DispatchEnv:
         peak = float(totals[slots].max() * self.rate_scale)
         self.max_arrivals = math.ceil(peak + 6 * math.sqrt(peak) + 8)
         self.num_orders = math.ceil(1.5 * (patience + 1) * peak) + self.max_arrivals
+        if self.num_orders * UNREACHABLE > INT32_MAX:
+            raise CmatError(f"{env_id}: {self.num_orders} order slots are too many to rank in "
+                            f"int32; lower patience or the fleet size")
         cumulative = np.cumsum(city.demand.reshape(city.demand.shape[0], -1), axis=1,
                                dtype=np.float64)
         self._cdf = jnp.asarray(cumulative / np.maximum(cumulative[:, -1:], 1e-30), jnp.float32)
@@ -359,12 +364,19 @@ class DispatchEnv:
         )
 
     def _observe(self, state: DispatchState) -> DispatchState:
-        """The state with each vehicle's K nearest open orders."""
+        """The state with each vehicle's K nearest open orders. Orders equally near a vehicle are
+        ranked by their slot rotated by the vehicle's index (vehicle i sees slot i first), so
+        that vehicles in one zone, whose pickup times are the same, do not all see the same
+        order first: a fleet that takes its first candidate spreads over the nearest orders."""
         travel = self._travel[self._hour(state.start + state.minute)]
+        orders = self.num_orders
         pickup = travel[state.zone[:, None], state.order_origin[None, :]]
-        pickup = jnp.where(state.order_valid[None, :], pickup, UNREACHABLE)
-        negative, candidates = jax.lax.top_k(-pickup, self.num_candidates)
-        candidate_pickup = -negative
+        pickup = jnp.where(state.order_valid[None, :], jnp.minimum(pickup, UNREACHABLE - 1),
+                           UNREACHABLE)
+        vehicle = jnp.arange(self.vehicles, dtype=jnp.int32)[:, None]
+        rotation = (jnp.arange(orders, dtype=jnp.int32)[None, :] - vehicle) % orders
+        _, candidates = jax.lax.top_k(-(pickup * orders + rotation), self.num_candidates)
+        candidate_pickup = jnp.take_along_axis(pickup, candidates, axis=1)
         ok = (state.busy == 0)[:, None] & (candidate_pickup <= self.max_pickup)
         return state._replace(candidates=candidates.astype(jnp.int32),
                              candidate_pickup=candidate_pickup, candidate_ok=ok)
