@@ -286,3 +286,23 @@ def test_cmat_eval_runs_a_baseline_like_a_trained_policy(
     ):
         assert main(["eval", *argv]) == 2
         assert message in capsys.readouterr().err
+
+
+@pytest.mark.optimised
+def test_mappo_learns_to_beat_random_dispatch_on_a_small_fleet() -> None:
+    """Measured (seed 0): greedy return 5.8 at init, 12.8 after 4,800 steps; random legal 7.7,
+    Hungarian 13.0 on the same task."""
+    from cmat.resolve import load_config
+    from cmat.runners.trainer import JaxTrainer
+
+    config = load_config(overrides=[
+        "env=dispatch:grid-12-high", "algo=mappo", "env_kwargs.grid_size=4",
+        "env_kwargs.episode_minutes=30", "rollout_length=30", "num_envs=8", "total_steps=4800",
+        "log_interval=20",
+    ])
+    trainer = JaxTrainer(config)
+    state, _ = trainer.train_chunk(trainer.init())
+    trained = float(trainer.evaluate(state, 64)["episode_return"][0])
+    env = make_env("dispatch:grid-12-high", grid_size=4, episode_minutes=30)
+    random = float(evaluate(env, "random", 64)["episode_return"].mean())
+    assert trained > random + 2.0, (trained, random)
