@@ -97,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--episodes", type=int,
                           help="episodes per seed (default: the run's eval_episodes; 32 for a "
                                "baseline without --run)")
+    evaluate.add_argument("--actions", choices=("greedy", "sample"),
+                          help="act greedily or sample the policy (default: the run's "
+                               "eval_actions)")
     evaluate.add_argument("--baseline", metavar="NAME",
                           help="dispatch tasks only: evaluate the classical policy NAME "
                                "(random, greedy, hungarian) instead of a checkpoint")
@@ -357,6 +360,8 @@ def eval_command(args: argparse.Namespace) -> None:
         raise CmatError("cmat eval needs --run DIR (or --baseline NAME with --env ID or --run)")
     run_dir = RunDir.open(args.run)
     config = run_dir.config()
+    if args.actions is not None:
+        config = dataclasses.replace(config, eval_actions=args.actions)
     if args.episodes is not None and not 0 < args.episodes <= INT32_MAX:
         raise CmatError(f"--episodes must be in [1, {INT32_MAX:,}], got {args.episodes:,}")
     if args.iterations is not None and config.algo != "cmat":
@@ -379,6 +384,7 @@ def eval_command(args: argparse.Namespace) -> None:
             extra["consensus_iterations"] = args.iterations
     episodes = args.episodes or config.eval_episodes
     extra["episodes_per_seed"] = episodes
+    extra["actions"] = config.eval_actions
     result = trainer.evaluate(state, episodes, seed=config.seed)
     per_seed = [
         {"seed": config.seed + index,
@@ -395,6 +401,8 @@ def baseline_command(args: argparse.Namespace) -> None:
         raise CmatError("--baseline needs exactly one of --env ID and --run DIR")
     if args.iterations is not None:
         raise CmatError("--iterations applies to cmat runs only, not to a baseline")
+    if args.actions is not None:
+        raise CmatError("--actions applies to a run's policy, not to a baseline")
     if args.run is not None:
         config = RunDir.open(args.run).config()
         env_id, env_kwargs, episodes = config.env, config.env_kwargs, config.eval_episodes

@@ -30,6 +30,7 @@ ENTROPY_REDUCTIONS = ("mean", "sum")
 LOSS_ORDERS = ("sampled", "index")
 LOGGERS = ("tensorboard", "wandb")
 NONFINITE_POLICIES = ("error", "warn")
+EVAL_ACTIONS = ("greedy", "sample")
 """What a host environment does with a NaN or infinite observation, reward or state
 (`TrainConfig.host_nonfinite`): stop the run with a one-line error, or replace the values by 0
 and count them (`metrics.csv` column `env_nonfinite`)."""
@@ -208,7 +209,12 @@ class TrainConfig:
     log_interval: int | None = None
     """Updates between log rows, evaluations and checkpoints; None gives about 20 per run."""
     eval_episodes: int = 32
-    """Greedy evaluation episodes per seed at each log interval."""
+    """Evaluation episodes per seed at each log interval."""
+    eval_actions: str = "greedy"
+    """How evaluation acts: 'greedy', each agent's most likely action (MAT's protocol), or
+    'sample', actions drawn from the policy as in training (Mava evaluates Sable so). Agents
+    that see the same observation take the same greedy action: a fleet's vehicles in one zone
+    can spread over its orders only by sampling (`cmat.envs.dispatch`)."""
     host_workers: int | None = None
     """Host environments only: worker processes that step them (0: in this process); None takes
     the suite's measured default (cmat.envs.host.DEFAULT_WORKERS)."""
@@ -274,6 +280,8 @@ def validate(config: TrainConfig) -> TrainConfig:
         (config.num_envs > 0, f"num_envs must be > 0, got {config.num_envs}"),
         (config.rollout_length > 0, f"rollout_length must be > 0, got {config.rollout_length}"),
         (config.eval_episodes > 0, f"eval_episodes must be > 0, got {config.eval_episodes}"),
+        (config.eval_actions in EVAL_ACTIONS,
+         f"eval_actions must be greedy or sample, got {config.eval_actions!r}"),
         (config.host_workers is None or config.host_workers >= 0,
          f"host_workers must be >= 0, got {config.host_workers}"),
         (config.host_crash_limit >= 1,

@@ -166,3 +166,19 @@ def test_initialisation_runs_lapack_on_one_thread() -> None:
         with single_threaded_lapack():
             assert set(blas_threads()) == {1}
         assert set(blas_threads()) == {2}
+
+
+def test_sampled_evaluation_draws_actions_from_the_policy() -> None:
+    """In a coordination game paying 10 for (A, A) and (B, B) and 0 otherwise, a fresh policy
+    is near uniform over A and B for each agent: sampled episodes pay 5 on average (sd 5),
+    greedy ones all pay the payoff of the most likely joint action, 0 or 10. The same
+    evaluation seed replays the same samples."""
+    episodes = 4096
+    game = ["env=matrix:fig1", "env_kwargs.payoff=[[10,0],[0,10]]", *TINY]
+    sampled = JaxTrainer(load_config(overrides=[*game, "eval_actions=sample"]))
+    greedy = JaxTrainer(load_config(overrides=game))
+    state = sampled.init()
+    mean = float(sampled.evaluate(state, episodes)["episode_return"][0])
+    assert abs(mean - 5.0) < 4 * 5 / np.sqrt(episodes), mean
+    assert float(sampled.evaluate(state, episodes)["episode_return"][0]) == mean
+    assert float(greedy.evaluate(state, episodes)["episode_return"][0]) in (0.0, 10.0)

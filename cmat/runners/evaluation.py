@@ -84,13 +84,16 @@ def tally_result(
 
 
 def evaluate_in_graph(
-    env: MarlEnv, algorithm: Algorithm, params: Params, rng: jax.Array, episodes: int
+    env: MarlEnv, algorithm: Algorithm, params: Params, rng: jax.Array, episodes: int,
+    sample: bool = False,
 ) -> dict[str, jax.Array]:
-    """`episodes` greedy episodes of one seed in parallel inside the program (one slot each)."""
+    """`episodes` episodes of one seed in parallel inside the program (one slot each), acting
+    greedily or, with `sample`, by sampling the policy (`TrainConfig.eval_actions`)."""
     spec = env.spec
     reset_key, rng = jax.random.split(rng)
     env_state, timestep = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
     greedy = jax.vmap(algorithm.greedy_with_memory, in_axes=(None, 0, 0, 0, 0))
+    act = jax.vmap(algorithm.act_with_memory, in_axes=(None, 0, 0, 0, 0, 0, 0))
     memory = initial_memories(algorithm, episodes)
     quota = jnp.ones(episodes, jnp.int32)
 
@@ -98,9 +101,16 @@ def evaluate_in_graph(
 
     def step(carry: Carry, key: jax.Array) -> tuple[Carry, None]:
         env_state, timestep, tally, memory = carry
-        actions, memory = greedy(
-            params, memory, timestep.obs, timestep.action_mask, timestep.done
-        )
+        if sample:
+            key, act_key = jax.random.split(key)
+            acted, memory = act(params, memory, timestep.obs, timestep.action_mask,
+                                jax.random.split(act_key, episodes), timestep.global_state,
+                                timestep.done)
+            actions = acted.actions
+        else:
+            actions, memory = greedy(
+                params, memory, timestep.obs, timestep.action_mask, timestep.done
+            )
         env_state, timestep = jax.vmap(env.step)(
             jax.random.split(key, episodes), env_state, env_actions(spec, actions)
         )

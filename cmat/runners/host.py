@@ -79,11 +79,18 @@ def policy_step(
     return keys[:, 0], acted, env_actions(setup.spec, acted.actions), memory
 
 
-def greedy_step(
-    setup: LearnerSetup, params: Params, memory: Any, obs: jax.Array, mask: jax.Array,
-    start: jax.Array,
+def eval_step(
+    setup: LearnerSetup, sample: bool, params: Params, memory: Any, obs: jax.Array,
+    mask: jax.Array, start: jax.Array, global_state: jax.Array, key: jax.Array,
 ) -> tuple[jax.Array, Any]:
-    """Greedy actions to send for every environment of every seed, and the new state."""
+    """Evaluation actions to send for every environment of every seed, greedy or (`sample`)
+    drawn from the policy with `key`, and the new state."""
+    if sample:
+        keys = jax.random.split(key, obs.shape[:2])
+        act = jax.vmap(jax.vmap(setup.algorithm.act_with_memory,
+                                in_axes=(None, 0, 0, 0, 0, 0, 0)), in_axes=(0, 0, 0, 0, 0, 0, 0))
+        acted, memory = act(params, memory, obs, mask, keys, global_state, start)
+        return env_actions(setup.spec, acted.actions), memory
     greedy = jax.vmap(jax.vmap(setup.algorithm.greedy_with_memory, in_axes=(None, 0, 0, 0, 0)))
     actions, memory = greedy(params, memory, obs, mask, start)
     return env_actions(setup.spec, actions), memory
@@ -112,7 +119,9 @@ class HostTrainer:
         options = compiler_options(self.learner_setup.algorithm.ynnpack_matmuls)
         self._init = jax.jit(partial(host_learner, self.learner_setup), compiler_options=options)
         self._policy = jax.jit(partial(policy_step, self.learner_setup), compiler_options=options)
-        self._greedy = jax.jit(partial(greedy_step, self.learner_setup), compiler_options=options)
+        self._eval_step = jax.jit(
+            partial(eval_step, self.learner_setup, config.eval_actions == "sample"),
+            compiler_options=options)
         self._learn = jax.jit(
             jax.vmap(partial(learn, self.learner_setup), in_axes=(0, Rollout._make((1, 0, 0, 0)))),
             donate_argnums=0,
@@ -252,9 +261,10 @@ class HostTrainer:
 
     # ------------------------------------------------------------------------------- evaluation
     def evaluate(self, state: TrainerState, episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
-        """Greedy episodes on a second pool, so training episodes are not cut: min(episodes,
-        num_envs) slots per seed (cmat.runners.evaluation). The same `seed` gives the same
-        simulator seeds."""
+        """Evaluation episodes (greedy or sampled: `TrainConfig.eval_actions`) on a second pool,
+        so training episodes are not cut: min(episodes, num_envs) slots per seed
+        (cmat.runners.evaluation). The same `seed` gives the same simulator seeds and
+        samples."""
         config, spec = self.config, self.env_spec
         slots = min(episodes, config.num_envs)
         if self._eval_pool is None or self._eval_size != slots:
@@ -268,12 +278,15 @@ class HostTrainer:
         quota = np.tile(split_evenly(episodes, slots), (config.seeds, 1))
         tally = tally_start((config.seeds, slots), spec)
         memory = initial_memories(self.learner_setup.algorithm, config.seeds, slots)
+        key = jax.random.PRNGKey(base)
         for _ in range(int(quota.max()) * spec.max_episode_steps):
             if np.all(tally.finished >= quota):
                 break
             obs, mask = self._per_seed(timestep.obs), self._per_seed(timestep.action_mask)
-            actions, memory = self._greedy(state.learner.params, memory, obs, mask,
-                                           self._per_seed(timestep.done))
+            key, act_key = jax.random.split(key)
+            actions, memory = self._eval_step(
+                state.learner.params, memory, obs, mask, self._per_seed(timestep.done),
+                self._per_seed(timestep.global_state), act_key)
             actions = np.asarray(actions)
             timestep = self._eval_pool.step(actions.reshape(-1, *actions.shape[2:]))
             tally = tally_step(tally, self._per_seed(timestep.reward),

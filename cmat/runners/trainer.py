@@ -143,7 +143,8 @@ class JaxTrainer:
         self._evaluate = jax.jit(
             jax.vmap(
                 lambda params, rng, episodes: evaluate_in_graph(
-                    collector.env, collector.algorithm, params, rng, episodes),
+                    collector.env, collector.algorithm, params, rng, episodes,
+                    sample=config.eval_actions == "sample"),
                 in_axes=(0, 0, None),
             ),
             static_argnums=2,
