@@ -196,7 +196,8 @@ class DispatchEnv:
         slots = city.slot_of(np.arange(self.start_minute, self.start_minute + window))
         peak = float(totals[slots].max() * self.rate_scale)
         self.max_arrivals = math.ceil(peak + 6 * math.sqrt(peak) + 8)
-        self.num_orders = math.ceil(1.5 * (patience + 1) * peak) + self.max_arrivals
+        self.num_orders = max(math.ceil(1.5 * (patience + 1) * peak) + self.max_arrivals,
+                              candidates)
         if self.num_orders * UNREACHABLE > INT32_MAX:
             raise CmatError(f"{env_id}: {self.num_orders} order slots are too many to rank in "
                             f"int32; lower patience or the fleet size")
@@ -375,7 +376,13 @@ class DispatchEnv:
                            UNREACHABLE)
         vehicle = jnp.arange(self.vehicles, dtype=jnp.int32)[:, None]
         rotation = (jnp.arange(orders, dtype=jnp.int32)[None, :] - vehicle) % orders
-        _, candidates = jax.lax.top_k(-(pickup * orders + rotation), self.num_candidates)
+        score = pickup * orders + rotation
+        chosen = []
+        for _ in range(self.num_candidates):  # K argmins: XLA's CPU top_k sorts every row
+            best = jnp.argmin(score, axis=1)
+            chosen.append(best)
+            score = score.at[jnp.arange(self.vehicles), best].set(INT32_MAX)
+        candidates = jnp.stack(chosen, axis=1)
         candidate_pickup = jnp.take_along_axis(pickup, candidates, axis=1)
         ok = (state.busy == 0)[:, None] & (candidate_pickup <= self.max_pickup)
         return state._replace(candidates=candidates.astype(jnp.int32),
