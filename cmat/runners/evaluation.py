@@ -26,14 +26,16 @@ from cmat.runners.collector import env_actions
 
 class EpisodeTally(NamedTuple):
     """Per slot [..., slots]: the return of the episode running, the summed return and wins of
-    the counted episodes, how many episodes have ended, and the summed episode metrics of the
-    counted episodes that ended [..., slots, M] (`EnvSpec.episode_metrics`)."""
+    the counted episodes, how many episodes have ended, and, per episode metric
+    (`EnvSpec.episode_metrics`) [..., slots, M], the sum of its values over the counted
+    episodes that ended where it is defined (not NaN) and how many those are."""
 
     running: Any
     total: Any
     wins: Any
     finished: Any
     metrics: Any
+    defined: Any
 
 
 def split_evenly(total: int, parts: int) -> np.ndarray:
@@ -44,7 +46,7 @@ def split_evenly(total: int, parts: int) -> np.ndarray:
 def tally_start(shape: tuple[int, ...], spec: EnvSpec, xp: Any = np) -> EpisodeTally:
     zeros = xp.zeros(shape, xp.float32)
     metrics = xp.zeros((*shape, len(spec.episode_metrics)), xp.float32)
-    return EpisodeTally(zeros, zeros, zeros, xp.zeros(shape, xp.int32), metrics)
+    return EpisodeTally(zeros, zeros, zeros, xp.zeros(shape, xp.int32), metrics, metrics)
 
 
 def tally_step(
@@ -55,13 +57,18 @@ def tally_step(
     episode metrics ([..., slots, M]; None where the environment reports none)."""
     running = tally.running + reward
     counted = done & (tally.finished < quota)
+    sums, defined = tally.metrics, tally.defined
+    if metrics is not None:
+        valid = counted[..., None] & ~xp.isnan(metrics)
+        sums = (sums + xp.where(valid, metrics, 0.0)).astype(xp.float32)
+        defined = (defined + valid).astype(xp.float32)
     return EpisodeTally(
         running=xp.where(done, 0.0, running).astype(xp.float32),
         total=(tally.total + xp.where(counted, running, 0.0)).astype(xp.float32),
         wins=(tally.wins + (counted & won)).astype(xp.float32),
         finished=tally.finished + done,
-        metrics=tally.metrics if metrics is None else (
-            tally.metrics + xp.where(counted[..., None], metrics, 0.0)).astype(xp.float32),
+        metrics=sums,
+        defined=defined,
     )
 
 
@@ -69,11 +76,12 @@ def tally_result(
     tally: EpisodeTally, quota: Any, episodes: int, spec: EnvSpec, xp: Any = np
 ) -> dict[str, Any]:
     """Mean return and win rate (NaN where the environment has none) over the last axis, and
-    each episode metric's mean over the counted episodes that ended (NaN where none did)."""
+    each episode metric's mean over the counted episodes that ended where it is defined (NaN
+    where it is in none)."""
     total = tally.total + xp.where(tally.finished < quota, tally.running, 0.0)
     win_rate = tally.wins.sum(axis=-1) / episodes
-    ended = xp.minimum(tally.finished, quota).sum(axis=-1)[..., None]
-    metrics = xp.where(ended > 0, tally.metrics.sum(axis=-2) / xp.maximum(ended, 1), xp.nan)
+    defined = tally.defined.sum(axis=-2)
+    metrics = xp.where(defined > 0, tally.metrics.sum(axis=-2) / xp.maximum(defined, 1), xp.nan)
     return {
         "episode_return": (total.sum(axis=-1) / episodes).astype(xp.float32),
         "win_rate": (win_rate if spec.has_win_rate else xp.full_like(win_rate, xp.nan))

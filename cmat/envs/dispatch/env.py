@@ -7,8 +7,9 @@ repositioning neighbours (actions K+1..K+R; `cmat.envs.dispatch.city.NEIGHBOURS`
 vehicle (on its way to a pickup, carrying a passenger or repositioning) may only stay. Each
 vehicle carries one passenger group at a time (no pooling; its `seats` are its busy state).
 
-Vehicles in one zone see the same orders, listed in a vehicle-specific order where pickup times
-tie (`DispatchEnv._observe`). The minute then runs in this order:
+Vehicles in one zone see the same K orders (the nearest to the zone), nearest first, equally
+near ones in a vehicle-specific order (`DispatchEnv._observe`). The minute then runs in this
+order:
 
 1. Claims. Where several vehicles claim one order, the claimant with the shortest pickup time
    gets it, ties to the lower vehicle index; every other claim is a *conflict* (the paper's
@@ -119,7 +120,8 @@ class DispatchState(NamedTuple):
     order_fare: jax.Array
     """float32 [O]: dollars."""
     candidates: jax.Array
-    """int32 [n, K]: order slots of each vehicle's K nearest open orders (what it observes)."""
+    """int32 [n, K]: order slots of the K open orders nearest to each vehicle's zone, nearest
+    first, ties in the vehicle's own cyclic order (what it observes)."""
     candidate_pickup: jax.Array
     """int32 [n, K]: their pickup minutes (`UNREACHABLE` for an empty slot)."""
     candidate_ok: jax.Array
@@ -149,8 +151,8 @@ class DispatchEnv:
         expiry_penalty: Dollars per expired order.
 
     Capacities: at most A = λ + 6√λ + 8 arrivals per minute (λ the peak rate per minute of the
-    window) and O = 1.5 × (patience + 1) × λ + A order slots; arrivals beyond them are dropped
-    and counted (`DispatchStats.dropped`).
+    window) and O = max(1.5 × (patience + 1) × λ + A, K) order slots; arrivals beyond them are
+    dropped and counted (`DispatchStats.dropped`).
 
     Raises CmatError for an option out of range.
     """
@@ -365,28 +367,34 @@ class DispatchEnv:
         )
 
     def _observe(self, state: DispatchState) -> DispatchState:
-        """The state with each vehicle's K nearest open orders. Orders equally near a vehicle are
-        ranked by their slot rotated by the vehicle's index (vehicle i sees slot i first), so
-        that vehicles in one zone, whose pickup times are the same, do not all see the same
-        order first: a fleet that takes its first candidate spreads over the nearest orders."""
+        """The state with each vehicle's candidates: the K open orders nearest to its zone
+        (ties to the lower order slot), which all vehicles of a zone share, nearest first;
+        orders equally near are listed in a cyclic order that starts at the zone list's
+        position i mod K for vehicle i. A zone's vehicles thus see equally near orders in
+        different orders, and a fleet that takes its first candidate spreads over them.
+        Computed per zone ([Z, O] pickup minutes) and gathered per vehicle."""
         travel = self._travel[self._hour(state.start + state.minute)]
-        orders = self.num_orders
-        pickup = travel[state.zone[:, None], state.order_origin[None, :]]
-        pickup = jnp.where(state.order_valid[None, :], jnp.minimum(pickup, UNREACHABLE - 1),
+        orders, k_max = self.num_orders, self.num_candidates
+        pickup = jnp.where(state.order_valid[None, :],
+                           jnp.minimum(travel[:, state.order_origin], UNREACHABLE - 1),
                            UNREACHABLE)
-        vehicle = jnp.arange(self.vehicles, dtype=jnp.int32)[:, None]
-        rotation = (jnp.arange(orders, dtype=jnp.int32)[None, :] - vehicle) % orders
-        score = pickup * orders + rotation
+        slots = jnp.arange(orders, dtype=jnp.int32)[None, :]
+        score = pickup * orders + slots
         chosen = []
-        for _ in range(self.num_candidates):  # K argmins: XLA's CPU top_k sorts every row
+        for _ in range(k_max):  # K argmins: XLA's CPU top_k sorts every row
             best = jnp.argmin(score, axis=1)
             chosen.append(best)
-            score = score.at[jnp.arange(self.vehicles), best].set(INT32_MAX)
-        candidates = jnp.stack(chosen, axis=1)
-        candidate_pickup = jnp.take_along_axis(pickup, candidates, axis=1)
+            score = jnp.where(slots == best[:, None], INT32_MAX, score)
+        zone_candidates = jnp.stack(chosen, axis=1).astype(jnp.int32)
+        zone_pickup = jnp.take_along_axis(pickup, zone_candidates, axis=1)
+        vehicle = jnp.arange(self.vehicles, dtype=jnp.int32)[:, None]
+        rotation = (jnp.arange(k_max, dtype=jnp.int32)[None, :] - vehicle) % k_max
+        position = jnp.argsort(zone_pickup[state.zone] * k_max + rotation, axis=1)
+        candidates = jnp.take_along_axis(zone_candidates[state.zone], position, axis=1)
+        candidate_pickup = jnp.take_along_axis(zone_pickup[state.zone], position, axis=1)
         ok = (state.busy == 0)[:, None] & (candidate_pickup <= self.max_pickup)
-        return state._replace(candidates=candidates.astype(jnp.int32),
-                             candidate_pickup=candidate_pickup, candidate_ok=ok)
+        return state._replace(candidates=candidates, candidate_pickup=candidate_pickup,
+                              candidate_ok=ok)
 
     def _timestep(self, state: DispatchState, reward: jax.Array, done: jax.Array) -> TimeStep:
         n, zones = self.vehicles, self.city.num_zones
