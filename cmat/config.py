@@ -30,10 +30,11 @@ ENTROPY_REDUCTIONS = ("mean", "sum")
 LOSS_ORDERS = ("sampled", "index")
 LOGGERS = ("tensorboard", "wandb")
 NONFINITE_POLICIES = ("error", "warn")
-EVAL_ACTIONS = ("greedy", "sample")
 """What a host environment does with a NaN or infinite observation, reward or state
 (`TrainConfig.host_nonfinite`): stop the run with a one-line error, or replace the values by 0
 and count them (`metrics.csv` column `env_nonfinite`)."""
+EVAL_ACTIONS = ("greedy", "sample")
+"""How evaluation acts (`TrainConfig.eval_actions`)."""
 
 @dataclass(frozen=True)
 class NetworkConfig:
