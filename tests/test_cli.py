@@ -326,7 +326,7 @@ def test_files_that_are_not_utf8_text_are_one_error_line(
          "argument --steps: invalid int value: 'many' (see `cmat train --help`)"),
         (["plot", "x"], "the following arguments are required: --out (see `cmat plot --help`)"),
         (["finetune", "--from", "x", "--mode", "bogus"], "argument --mode: invalid choice"),
-        (["eval"], "the following arguments are required: --run"),
+        (["eval"], "cmat eval needs --run DIR (or --baseline NAME with --env ID or --run)"),
     ],
 )
 def test_usage_errors_are_one_error_line(

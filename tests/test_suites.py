@@ -23,6 +23,7 @@ IDS = {
     "mamujoco": "mamujoco:Ant-4x2", "grf": "grf:academy_counterattack_easy",
     "pettingzoo": "pettingzoo:my_pkg.envs:make_env", "jumanji": "jumanji:rware-tiny-2ag",
     "mabrax": "mabrax:hopper_3x1", "jax": "jax:my_pkg.envs:make_env",
+    "dispatch": "dispatch:grid-100-mid",
 }
 
 

@@ -84,7 +84,8 @@ ADDED_TIMESTEP_FIELDS = {"alive": True, "global_state": 0.0}
 """`TimeStep` fields newer than the first checkpoint format, with the value a checkpoint
 without them gets: every agent active, a zero global state. They describe only the
 observation in progress when the checkpoint was written, so a resumed run's first step at most
-sees them wrong; everything learned is restored exactly."""
+sees them wrong; everything learned is restored exactly. Newer optional fields (`metrics`) are
+None for every environment that existed before them, and a checkpoint without them gets None."""
 
 
 def state_to_bytes(state: TrainerState) -> bytes:
@@ -98,13 +99,18 @@ def state_to_bytes(state: TrainerState) -> bytes:
 
 
 def fill_added_timestep_fields(raw: dict[str, Any], template: EnvsState) -> None:
-    """Add `ADDED_TIMESTEP_FIELDS` to restored environment fields that lack them (in place)."""
+    """Add `ADDED_TIMESTEP_FIELDS`, and the optional fields `template` leaves None, to restored
+    environment fields that lack them (in place)."""
     if not isinstance(raw.get("timestep"), dict):
         return
-    for name, value in ADDED_TIMESTEP_FIELDS.items():
-        if name not in raw["timestep"]:
-            shape = getattr(template.timestep, name)
-            raw["timestep"][name] = np.full(shape.shape, value, shape.dtype)
+    for name in template.timestep._fields:
+        shape = getattr(template.timestep, name)
+        if name in raw["timestep"]:
+            continue
+        if shape is None:
+            raw["timestep"][name] = None
+        elif name in ADDED_TIMESTEP_FIELDS:
+            raw["timestep"][name] = np.full(shape.shape, ADDED_TIMESTEP_FIELDS[name], shape.dtype)
 
 
 def state_difference(expected: Any, found: Any, path: str) -> str | None:
