@@ -106,7 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--env", metavar="ID",
                           help="with --baseline and no --run: the dispatch task to evaluate on")
     evaluate.add_argument("--seed", type=int, default=0,
-                          help="with --baseline: the seed of its episodes (default 0)")
+                          help="which evaluation episodes (start states and draws) each seed "
+                               "plays (default 0; training evaluates at env step t with seed t, "
+                               "so 0 replays none of them)")
     evaluate.add_argument(
         "--iterations", type=int, metavar="K",
         help="CMAT only: run the decoder for K consensus iterations instead of the trained m "
@@ -353,6 +355,8 @@ def train_into(
 
 
 def eval_command(args: argparse.Namespace) -> None:
+    if not 0 <= args.seed <= INT32_MAX:
+        raise CmatError(f"--seed must be in [0, {INT32_MAX:,}], got {args.seed:,}")
     if args.baseline is not None:
         baseline_command(args)
         return
@@ -385,7 +389,8 @@ def eval_command(args: argparse.Namespace) -> None:
     episodes = args.episodes or config.eval_episodes
     extra["episodes_per_seed"] = episodes
     extra["actions"] = config.eval_actions
-    result = trainer.evaluate(state, episodes, seed=config.seed)
+    extra["episode_seed"] = args.seed
+    result = trainer.evaluate(state, episodes, episode_seed=args.seed)
     per_seed = [
         {"seed": config.seed + index,
          **{name: json_number(values[index]) for name, values in result.items()}}

@@ -461,6 +461,13 @@ def atomic_write(path: Path, data: bytes) -> None:
         os.close(directory)
 
 
+EVAL_PROTOCOL = 2
+"""How the session's evaluations chose their episodes, recorded in each sessions.jsonl line:
+2, the evaluation at env step t plays the episodes of episode seed t (fresh episodes at every
+evaluation, `cmat.runners.base.Trainer.evaluate`); 1 (lines without the field, cmat before
+2026-12-05), every evaluation of a run replayed the same episodes."""
+
+
 class Session:
     """One training session of a run (a `cmat train` or `finetune`, or a `--resume`): where it
     ran (host, JAX backend and device, CPU cores) and its wall-clock seconds and env steps so far,
@@ -480,6 +487,7 @@ class Session:
             "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
             else os.cpu_count(),
             "from_steps": env_steps, "to_steps": env_steps, "seconds": 0.0,
+            "eval_protocol": EVAL_PROTOCOL,
         }
 
     def record(self, env_steps: int) -> None:

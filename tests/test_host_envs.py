@@ -494,8 +494,8 @@ def test_grf_trains_in_workers() -> None:
 def test_sampled_evaluation_through_the_host_runner() -> None:
     """A fresh policy is near uniform: sampled episodes of the signal game score 1/4 × 1/3 per
     step (the striker's action 3 is masked), 5/12 per episode (sd 0.62), where greedy play
-    repeats one joint action and scores 5/3 or 0 on average; the same seed replays the same
-    samples."""
+    repeats one joint action and scores 5/3 or 0 on average; the same episode seed replays the
+    same samples, another draws others."""
     trainer = HostTrainer(config(SIGNAL, "num_envs=16", "host_workers=0", "eval_actions=sample"))
     try:
         state = trainer.init()
@@ -503,5 +503,7 @@ def test_sampled_evaluation_through_the_host_runner() -> None:
         mean = float(trainer.evaluate(state, episodes)["episode_return"][0])
         assert abs(mean - 5 / 12) < 4 * 0.62 / np.sqrt(episodes), mean
         assert float(trainer.evaluate(state, episodes)["episode_return"][0]) == mean
+        other = float(trainer.evaluate(state, episodes, episode_seed=1)["episode_return"][0])
+        assert other != mean and abs(other - 5 / 12) < 4 * 0.62 / np.sqrt(episodes), other
     finally:
         trainer.close()

@@ -18,7 +18,7 @@ from cmat.errors import CmatError
 from cmat.policy import Policy
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
-from cmat.runners.base import EVAL_SEED_OFFSET, seed_keys
+from cmat.runners.base import eval_keys
 from cmat.runners.trainer import JaxTrainer
 
 pytestmark = pytest.mark.quick_compiles
@@ -46,7 +46,7 @@ def test_a_users_greedy_loop_scores_what_cmat_eval_scores(smax_run: Path) -> Non
     expected = trainer.evaluate(state, episodes)["episode_return"][1]
 
     env = policy.make_env()
-    rng = seed_keys(config, offset=EVAL_SEED_OFFSET)[1]
+    rng = eval_keys(config, 0)[1]
     reset_key, rng = jax.random.split(rng)
     env_state, step = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
     returns, finished = np.zeros(episodes), np.zeros(episodes, bool)
@@ -267,7 +267,7 @@ def test_a_recurrent_policys_loop_with_memory_scores_what_evaluation_scores() ->
     policy = Policy(trainer.env_spec, config, 6, 0, trainer.learner_setup.algorithm, params)
     assert policy.recurrent
     env = policy.make_env()
-    rng = seed_keys(config, offset=EVAL_SEED_OFFSET)[1]
+    rng = eval_keys(config, 0)[1]
     reset_key, rng = jax.random.split(rng)
     env_state, step = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
     for method in (policy.greedy, policy.act):

@@ -172,7 +172,7 @@ def test_sampled_evaluation_draws_actions_from_the_policy() -> None:
     """In a coordination game paying 10 for (A, A) and (B, B) and 0 otherwise, a fresh policy
     is near uniform over A and B for each agent: sampled episodes pay 5 on average (sd 5),
     greedy ones all pay the payoff of the most likely joint action, 0 or 10. The same
-    evaluation seed replays the same samples."""
+    evaluation episode seed replays the same samples, another draws others."""
     episodes = 4096
     game = ["env=matrix:fig1", "env_kwargs.payoff=[[10,0],[0,10]]", *TINY]
     sampled = JaxTrainer(load_config(overrides=[*game, "eval_actions=sample"]))
@@ -181,4 +181,6 @@ def test_sampled_evaluation_draws_actions_from_the_policy() -> None:
     mean = float(sampled.evaluate(state, episodes)["episode_return"][0])
     assert abs(mean - 5.0) < 4 * 5 / np.sqrt(episodes), mean
     assert float(sampled.evaluate(state, episodes)["episode_return"][0]) == mean
+    other = float(sampled.evaluate(state, episodes, episode_seed=7)["episode_return"][0])
+    assert other != mean and abs(other - 5.0) < 4 * 5 / np.sqrt(episodes), other
     assert float(greedy.evaluate(state, episodes)["episode_return"][0]) in (0.0, 10.0)

@@ -17,7 +17,7 @@ reference's. (d): the reference (m = n) against each CMAT line with another m an
 reference's consensus source. (e): CMAT against MAT on the matrix games (`matrix:` ids);
 (a)-(d) use the other tasks.
 
-Scores: each seed's score (`cmat.experiments.lines.Line.scores`: its last greedy evaluation, or
+Scores: each seed's score (`cmat.experiments.lines.Line.scores`: its last evaluation, or
 its mean evaluation over the spec's `score_window`). Evidence for "X beats Y": rliable's
 probability of improvement P(X > Y) with a stratified
 bootstrap 95% percentile interval, on each task (seeds resampled) and aggregated over the tasks

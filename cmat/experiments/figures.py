@@ -1,5 +1,5 @@
 """The figures of an experiment: `figure_main.png` (paper Fig. 3), a panel per task, a line per
-algorithm / variant of figure `main`, greedy evaluation metric against env steps, mean ± std
+algorithm / variant of figure `main`, evaluation metric against env steps, mean ± std
 over seeds shaded, published reference figures as dashed horizontal lines; and
 `figure_ablation.png` (paper Fig. 4) for the variants of figure `ablation`.
 """
@@ -91,7 +91,7 @@ def draw(
     if figure_kind == "main" and handles:
         legend_below(figure, list(handles.values()), list(handles))
     title = "training curves" if figure_kind == "main" else "ablation (CMAT)"
-    figure.suptitle(f"{plan.spec.name}: {title}, greedy evaluation, mean ± std over seeds",
+    figure.suptitle(f"{plan.spec.name}: {title}, evaluation, mean ± std over seeds",
                     fontsize="small")
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=90)

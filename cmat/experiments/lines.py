@@ -2,7 +2,7 @@
 each task, and the published reference figures that go beside them.
 
 The metric of a task is the win rate where its environment defines one, else the episode
-return. A seed's score is its last greedy evaluation, or the mean of its evaluations over the
+return. A seed's score is its last evaluation, or the mean of its evaluations over the
 last part of its budget (`Line.scores`, the spec's `score_window`).
 """
 
@@ -38,7 +38,7 @@ class Line:
         return metric_curve(self.rows, metric)
 
     def scores(self, metric: str, window: float = 0.0) -> list[float]:
-        """Each seed's score on `metric`, in seed order: the mean of its greedy evaluations at
+        """Each seed's score on `metric`, in seed order: the mean of its evaluations at
         env steps >= (1 - `window`) × its last evaluation's, so `window` = 0 gives the last
         evaluation alone. With E episodes per evaluation, the mean of k evaluations is the
         win rate (or mean return) over their k × E episodes. Seeds without an evaluation of

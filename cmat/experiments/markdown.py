@@ -15,7 +15,8 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
            (f"Spec: `spec.yaml` (from `{plan.spec.path}`). Seeds {seed_range(plan)} of every "
             f"line. {settings_text(plan)} Score: {score_text(plan)}, mean ± std (population "
             f"std, ddof = 0) over seeds (n = {plan.spec.seeds} unless marked). Metric: win "
-            f"rate where the environment defines one, else episode return."), ""]
+            f"rate where the environment defines one, else episode return."
+            f"{old_protocol_text(summary)}"), ""]
     main = labels_of(summary, "main")
     if main:
         out += ["## Scores", "",
@@ -162,10 +163,25 @@ def cell(line: dict[str, Any] | None, seeds: int) -> str:
 def score_text(plan: Plan) -> str:
     """How a seed's score is made (cmat.experiments.lines.Line.scores), in words."""
     window = plan.spec.score_window
+    kinds = {run.config.eval_actions for run in plan.runs if run.config is not None}
+    evaluation = {frozenset({"greedy"}): "greedy evaluation",
+                  frozenset({"sample"}): "sampled evaluation"}.get(
+        frozenset(kinds), "evaluation (greedy or sampled: each run's `eval_actions`)")
     if window == 0:
-        return "each seed's last greedy evaluation"
-    return (f"each seed's mean greedy evaluation over the last {window * 100:g}% of its env steps "
+        return f"each seed's last {evaluation}"
+    return (f"each seed's mean {evaluation} over the last {window * 100:g}% of its env steps "
             f"(`score_window`; its last evaluation included)")
+
+
+def old_protocol_text(summary: dict[str, Any]) -> str:
+    """A sentence naming the runs evaluated before each evaluation drew its own episodes
+    (`cmat.rundir.EVAL_PROTOCOL`), or nothing."""
+    old = [run["run"] for run in summary["runs"] if run.get("eval_protocol") == 1]
+    if not old:
+        return ""
+    return (f" {len(old)} of {len(summary['runs'])} runs were evaluated under the old protocol "
+            f"(every evaluation of a run replayed the same episodes, so a score window averages "
+            f"repeated evaluations of one set of episodes): {', '.join(old)}.")
 
 
 def claims_section(summary: dict[str, Any], score: str, seeds: int) -> list[str]:
@@ -196,7 +212,7 @@ def claims_section(summary: dict[str, Any], score: str, seeds: int) -> list[str]
             f"in mind. "
             f"Fine-tuning stages ran "
             f"their own steps after their base run. Tasks with `matrix:` ids are claim (e)'s."
-            + (" The last column judges each claim the same way from each seed's last greedy "
+            + (" The last column judges each claim the same way from each seed's last "
                "evaluation alone, to show how much the verdict owes to the score's definition."
                if from_finals else "")),
            "", "| claim | verdict | evidence: X vs Y, aggregate P(X > Y) [95% CI], IQM of X and "

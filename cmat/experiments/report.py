@@ -100,7 +100,8 @@ def summarise(
         "suite_published": matching_suite_aggregates(
             load_suite_aggregates(), [env.id for env in plan.spec.envs]),
         "runs": [{"run": run.name, "status": run.found, "note": run.note,
-                  "outcome": run.outcome, "seconds": training_seconds(run)}
+                  "outcome": run.outcome, "seconds": training_seconds(run),
+                  "eval_protocol": eval_protocol(run)}
                  for run in plan.runs],
     }
     summary["compute"] = compute_totals(summary["runs"])
@@ -120,6 +121,15 @@ def training_seconds(run: Run) -> dict[str, float]:
         where = place(session)
         seconds[where] = seconds.get(where, 0.0) + float(session.get("seconds", 0.0))
     return seconds
+
+
+def eval_protocol(run: Run) -> int | None:
+    """The oldest evaluation protocol (`cmat.rundir.EVAL_PROTOCOL`) among `run`'s sessions
+    (1 for a session that does not record one); None for a run without sessions."""
+    if not run.path.is_dir():
+        return None
+    sessions = RunDir(run.path).sessions()
+    return min((int(s.get("eval_protocol", 1)) for s in sessions), default=None)
 
 
 def place(session: dict[str, Any]) -> str:

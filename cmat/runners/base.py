@@ -60,9 +60,15 @@ class Trainer(Protocol):
         metrics have one entry per seed, `env_steps` among them."""
         ...
 
-    def evaluate(self, state: TrainerState, episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
-        """Greedy `episode_return` and `win_rate` of `episodes` episodes per seed
-        (`cmat.runners.evaluation`); the same `seed` plays the same episodes."""
+    def evaluate(
+        self, state: TrainerState, episodes: int, episode_seed: int = 0
+    ) -> dict[str, np.ndarray]:
+        """`episode_return`, `win_rate` and the environment's metrics of `episodes` episodes per
+        seed (`cmat.runners.evaluation`), acting as `TrainConfig.eval_actions` says. The
+        episodes (start states, environment and action draws) are those of `episode_seed` and
+        the run's seeds: the same `episode_seed` replays them, another draws new ones. Training
+        evaluates at env step t with `episode_seed = t` (`cmat.runners.loop`), so no two of a
+        run's evaluations share episodes, and `cmat eval`'s default 0 shares none with them."""
         ...
 
     def env_steps(self, state: TrainerState) -> int:
@@ -237,3 +243,9 @@ def seed_keys(config: TrainConfig, offset: int = 0) -> jax.Array:
 
 EVAL_SEED_OFFSET = 1_000_003
 """Added to a seed number for its evaluation keys: evaluation never replays training's."""
+
+
+def eval_keys(config: TrainConfig, episode_seed: int) -> jax.Array:
+    """[seeds] PRNG keys of the evaluation episodes `episode_seed` of each of the run's seeds."""
+    return jax.vmap(jax.random.fold_in, in_axes=(0, None))(
+        seed_keys(config, offset=EVAL_SEED_OFFSET), jnp.uint32(episode_seed))

@@ -96,9 +96,11 @@ def eval_step(
     return env_actions(setup.spec, actions), memory
 
 
-def env_seeds(base: int, stream: int, count: int) -> list[int]:
-    """`count` distinct simulator seeds for seed `base`; `stream` 0 trains, 1 evaluates."""
-    return [int(s) for s in np.random.SeedSequence([base, stream]).generate_state(count)]
+def env_seeds(base: int, stream: int, count: int, episode_seed: int | None = None) -> list[int]:
+    """`count` distinct simulator seeds for seed `base`; `stream` 0 trains, 1 evaluates (the
+    evaluation episodes `episode_seed`, `Trainer.evaluate`)."""
+    entropy = [base, stream] if episode_seed is None else [base, stream, episode_seed]
+    return [int(s) for s in np.random.SeedSequence(entropy).generate_state(count)]
 
 
 class HostTrainer:
@@ -260,11 +262,13 @@ class HostTrainer:
         return state, numbers
 
     # ------------------------------------------------------------------------------- evaluation
-    def evaluate(self, state: TrainerState, episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
+    def evaluate(
+        self, state: TrainerState, episodes: int, episode_seed: int = 0
+    ) -> dict[str, np.ndarray]:
         """Evaluation episodes (greedy or sampled: `TrainConfig.eval_actions`) on a second pool,
         so training episodes are not cut: min(episodes, num_envs) slots per seed
-        (cmat.runners.evaluation). The same `seed` gives the same simulator seeds and
-        samples."""
+        (cmat.runners.evaluation). The same `episode_seed` gives the same simulator seeds and
+        samples (`Trainer.evaluate`)."""
         config, spec = self.config, self.env_spec
         slots = min(episodes, config.num_envs)
         if self._eval_pool is None or self._eval_size != slots:
@@ -272,13 +276,14 @@ class HostTrainer:
                 self._eval_pool.close()
             self._eval_pool = self._new_pool(self._seeds(1, slots))
             self._eval_size = slots
-        base = config.seed + EVAL_SEED_OFFSET + seed
-        seeds = [s for k in range(config.seeds) for s in env_seeds(base + k, 1, slots)]
+        base = config.seed + EVAL_SEED_OFFSET
+        seeds = [s for k in range(config.seeds)
+                 for s in env_seeds(base + k, 1, slots, episode_seed)]
         timestep = self._eval_pool.reset(seeds)
         quota = np.tile(split_evenly(episodes, slots), (config.seeds, 1))
         tally = tally_start((config.seeds, slots), spec)
         memory = initial_memories(self.learner_setup.algorithm, config.seeds, slots)
-        key = jax.random.PRNGKey(base)
+        key = jax.random.fold_in(jax.random.PRNGKey(base), episode_seed)
         for _ in range(int(quota.max()) * spec.max_episode_steps):
             if np.all(tally.finished >= quota):
                 break

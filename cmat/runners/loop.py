@@ -229,7 +229,7 @@ def run_chunk(
     steps = trainer.env_steps(state)
     steps_per_second = (steps - before) * config.seeds / (time.perf_counter() - start)
     watch.chunk(np.asarray(train["episode_return"]), (steps - before) // config.num_envs)
-    evaluation = trainer.evaluate(state, config.eval_episodes, seed=config.seed)
+    evaluation = trainer.evaluate(state, config.eval_episodes, episode_seed=steps)
     evaluation = {**evaluation, "env_steps": train["env_steps"]}
     rows = seed_rows("train", train, config.seed) + seed_rows("eval", evaluation, config.seed)
     run_dir.append_metrics(rows)

@@ -22,8 +22,8 @@ from cmat.config import TrainConfig
 from cmat.envs import make_env
 from cmat.envs.protocol import EnvSpec
 from cmat.runners.base import (
-    EVAL_SEED_OFFSET,
     TrainerState,
+    eval_keys,
     restore_state,
     seed_keys,
     single_threaded_lapack,
@@ -178,8 +178,10 @@ class JaxTrainer:
         one at a time. The result also tells the program's memory (`memory_analysis()`)."""
         return self._chunk.lower(state, jnp.asarray(1, jnp.int32)).compile()
 
-    def evaluate(self, state: TrainerState, episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
-        keys = seed_keys(self.config, offset=EVAL_SEED_OFFSET + seed)
+    def evaluate(
+        self, state: TrainerState, episodes: int, episode_seed: int = 0
+    ) -> dict[str, np.ndarray]:
+        keys = eval_keys(self.config, episode_seed)
         metrics = self._evaluate(state.learner.params, keys, episodes)
         return {key: np.asarray(value) for key, value in metrics.items()}
 

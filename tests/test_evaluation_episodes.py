@@ -1,0 +1,94 @@
+"""Every evaluation of a run plays its own episodes: the evaluation at env step t plays the
+episodes of `episode_seed = t` (`cmat.runners.loop`), `cmat eval --seed S` plays those of S, the
+same seed replays them exactly and another draws others."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from types import SimpleNamespace
+from typing import cast
+
+import numpy as np
+import pytest
+
+from cmat.cli import main
+from cmat.experiments.markdown import old_protocol_text
+from cmat.experiments.plan import Run
+from cmat.experiments.report import eval_protocol
+from cmat.rundir import EVAL_PROTOCOL, RunDir
+from cmat.runners.host import build_trainer
+
+METRICS = ("episode_return", "service_rate", "revenue", "expired", "conflicts_per_step")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A dispatch run (orders arrive at random: two sets of episodes differ in revenue almost
+    surely) with three evaluations."""
+    out = tmp_path_factory.mktemp("fresh") / "run"
+    assert main(["train", "--env", "dispatch:grid-8-high", "--algo", "mappo", "--steps", "360",
+                 "--set", "env_kwargs.grid_size=3", "env_kwargs.episode_minutes=20",
+                 "num_envs=2", "rollout_length=30", "log_interval=2", "eval_episodes=3",
+                 "--out", str(out)]) == 0
+    return out
+
+
+def eval_rows(run: Path) -> list[dict[str, str]]:
+    return [r for r in csv.DictReader((run / "metrics.csv").open()) if r["kind"] == "eval"]
+
+
+def test_each_training_evaluation_plays_the_episodes_of_its_step(run: Path) -> None:
+    rows = eval_rows(run)
+    assert [int(r["env_steps"]) for r in rows] == [120, 240, 360]
+    config = RunDir.open(run).config()
+    trainer = build_trainer(config)
+    state = trainer.from_bytes(RunDir.open(run).load_checkpoint()[0])
+    last = trainer.evaluate(state, 3, episode_seed=360)
+    for name in METRICS:
+        assert float(rows[-1][name]) == pytest.approx(float(last[name][0]), rel=1e-6), name
+    again = trainer.evaluate(state, 3, episode_seed=360)
+    other = trainer.evaluate(state, 3, episode_seed=240)
+    assert all(np.array_equal(last[name], again[name]) for name in METRICS)
+    assert not np.array_equal(last["revenue"], other["revenue"])
+
+
+def test_cmat_eval_seed_picks_the_episodes(run: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    def evaluated(*argv: str) -> dict[str, float]:
+        capsys.readouterr()
+        assert main(["eval", "--run", str(run), *argv]) == 0
+        result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        return dict(result["per_seed"][0], episode_seed=result["episode_seed"])
+
+    last = eval_rows(run)[-1]
+    replayed = evaluated("--seed", "360")
+    assert replayed["episode_seed"] == 360
+    assert replayed["revenue"] == pytest.approx(float(last["revenue"]), rel=1e-6)
+    fresh = evaluated()
+    assert fresh["episode_seed"] == 0 and fresh["revenue"] != replayed["revenue"]
+    assert main(["eval", "--run", str(run), "--seed", "-1"]) == 2
+    assert "--seed must be in [0," in capsys.readouterr().err.splitlines()[-1]
+
+
+def test_reports_name_the_runs_evaluated_under_the_old_protocol(run: Path, tmp_path: Path) -> None:
+    """A run records its evaluation protocol in sessions.jsonl; a results page names the runs
+    whose sessions predate it (every evaluation replayed one set of episodes)."""
+    sessions = (run / "sessions.jsonl").read_text().splitlines()
+    assert sessions and all(json.loads(line)["eval_protocol"] == EVAL_PROTOCOL
+                            for line in sessions)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "sessions.jsonl").write_text(
+        json.dumps({"backend": "cpu", "cpus": 2, "seconds": 5.0}) + "\n"
+        + json.dumps({"backend": "cpu", "cpus": 2, "seconds": 5.0, "eval_protocol": 2}) + "\n")
+    assert eval_protocol(cast(Run, SimpleNamespace(path=old))) == 1
+    assert eval_protocol(cast(Run, SimpleNamespace(path=run))) == EVAL_PROTOCOL
+    assert eval_protocol(cast(Run, SimpleNamespace(path=tmp_path / "absent"))) is None
+    summary = {"runs": [{"run": "a/cmat-s0-2", "eval_protocol": 1},
+                        {"run": "a/mat-s0-2", "eval_protocol": 2},
+                        {"run": "a/mappo-s0-2", "eval_protocol": None}]}
+    text = old_protocol_text(summary)
+    assert "1 of 3 runs were evaluated under the old protocol" in text
+    assert text.endswith(": a/cmat-s0-2.")
+    assert old_protocol_text({"runs": summary["runs"][1:]}) == ""
