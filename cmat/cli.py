@@ -416,19 +416,10 @@ def baseline_command(args: argparse.Namespace) -> None:
     episodes = args.episodes if args.episodes is not None else episodes
     if not 0 < episodes <= 100_000:
         raise CmatError(f"--episodes must be in [1, 100,000] for a baseline, got {episodes:,}")
-    import numpy as np
+    from cmat.envs.dispatch.baselines import baseline_env, evaluate_means
 
-    from cmat.envs import make_env
-    from cmat.envs.dispatch import DispatchEnv
-    from cmat.envs.dispatch.baselines import evaluate as evaluate_baseline
-
-    env = make_env(env_id, **env_kwargs)
-    if not isinstance(env, DispatchEnv):
-        raise CmatError(f"--baseline evaluates dispatch tasks only, not {env_id}")
-    result = evaluate_baseline(env, args.baseline, episodes, seed=args.seed)
-    summary = {name: json_number(float(values[~np.isnan(values)].mean())
-                                 if (~np.isnan(values)).any() else math.nan)
-               for name, values in result.items()}
+    means = evaluate_means(baseline_env(env_id, env_kwargs), args.baseline, episodes, args.seed)
+    summary = {name: json_number(value) for name, value in means.items()}
     print(json.dumps({"baseline": args.baseline, "env": env_id, "episodes_per_seed": episodes,
                       "per_seed": [{"seed": args.seed, **summary}]}))
 

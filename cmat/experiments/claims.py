@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from cmat.algorithms import ALGORITHM_LABELS
+from cmat.experiments.baselines import BASELINE_VARIANT
 from cmat.experiments.spec import ExperimentSpec
 from cmat.experiments.statistics import bootstrap, improvement_probability, interval, iqm, normalise
 
@@ -197,10 +198,11 @@ def judge_claims(
     for task in summary["tasks"]:
         if "unavailable" in task:
             continue
-        task_scores = {label: line[scores] for label, line in task["lines"].items()
-                       if line[scores]}
+        learned = {label: line for label, line in task["lines"].items()
+                   if line["variant"] != BASELINE_VARIANT}
+        task_scores = {label: line[scores] for label, line in learned.items() if line[scores]}
         by_task[task["env"]] = normalise(task_scores, task["metric"]) if task_scores else {}
-        for label, line in task["lines"].items():
+        for label, line in learned.items():
             lines.setdefault(label, line)
             iterations.setdefault(label, {})[task["env"]] = line.get("iterations")
     game = {t: s for t, s in by_task.items() if t.startswith("matrix:")}

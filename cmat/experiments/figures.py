@@ -1,6 +1,7 @@
 """The figures of an experiment: `figure_main.png` (paper Fig. 3), a panel per task, a line per
 algorithm / variant of figure `main`, evaluation metric against env steps, mean ± std
-over seeds shaded, published reference figures as dashed horizontal lines; and
+over seeds shaded, published reference figures as grey dashed horizontal lines, classical
+baselines (`cmat.experiments.baselines`) as coloured dashed horizontal lines; and
 `figure_ablation.png` (paper Fig. 4) for the variants of figure `ablation`.
 """
 
@@ -10,6 +11,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from cmat.experiments.baselines import BASELINE_VARIANT
 from cmat.experiments.lines import (
     METRIC_NAMES,
     Line,
@@ -65,6 +67,10 @@ def draw(
             key = label if figure_kind == "ablation" else line.label
             color = colors.setdefault(key, palette[len(colors) % len(palette)])
             steps, mean, std = curve
+            if line.variant == BASELINE_VARIANT:
+                handles.setdefault(key, axes.axhline(
+                    mean[-1], color=color, lw=1.2, ls="--", label=label))
+                continue
             (handle,) = axes.plot(steps, mean, color=color, label=label,
                                   marker=marker(steps), markersize=3)
             axes.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2)

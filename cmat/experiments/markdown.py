@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from cmat.experiments.baselines import BASELINE_VARIANT
 from cmat.experiments.claims import EVIDENCE_NEEDED, NO_DATA, SEPARATION, coverage
 from cmat.experiments.lines import METRIC_NAMES
 from cmat.experiments.plan import Plan
@@ -31,8 +32,14 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
                   else METRIC_NAMES[task["metric"]])
         out.append(f"| {task['label']} | {metric} | {task['steps']:,} | " + " | ".join(cells)
                    + " |")
+    if plan.spec.baselines:
+        out.append(f"\nBaselines ({', '.join(plan.spec.baselines)}; dispatch tasks): one "
+                   f"evaluation per seed of the task's evaluation episodes and options, not "
+                   f"trained (`cmat.experiments.baselines`).")
+    out += task_metrics_section(summary)
     stage_steps = {line["variant"]: line["steps"] for task in summary["tasks"]
                    for line in task["lines"].values() if "main" in line["figures"]
+                   and line["variant"] != BASELINE_VARIANT
                    and plan.spec.variant(line["variant"]).finetune}
     for variant, steps in stage_steps.items():
         out.append(f"\nFine-tuning stage `{variant}` ran {steps:,} env steps after its base run "
@@ -105,6 +112,33 @@ def markdown(plan: Plan, summary: dict[str, Any]) -> str:
                             for where, seconds in run.get("seconds", {}).items())
         out.append(f"| {run['run']} | {found} | {run['outcome'] or '—'} | {trained or '—'} |")
     return "\n".join(out) + "\n"
+
+
+def task_metrics_section(summary: dict[str, Any]) -> list[str]:
+    """Per task whose environment reports figures beyond the return and the win rate (e.g.
+    dispatch's service rate and waits), a table of every line's figures at each seed's last
+    evaluation, averaged over seeds (`report.last_metrics`); nothing for other tasks."""
+    out: list[str] = []
+    for task in summary["tasks"]:
+        lines = {label: line for label, line in task.get("lines", {}).items()
+                 if line.get("metrics")}
+        names = [name for name in dict.fromkeys(
+            key for line in lines.values() for key in line["metrics"])
+            if name not in ("episode_return", "win_rate")]
+        if not names:
+            continue
+        if not out:
+            out += ["", "## Environment metrics", "",
+                    "Each line's figures at each seed's last evaluation, mean over seeds."]
+        out += ["", f"**{task['label']}**", "",
+                "| line | episode return | " + " | ".join(names) + " |",
+                "|---" * (2 + len(names)) + "|"]
+        for label, line in lines.items():
+            values = [line["metrics"].get(name) for name in ("episode_return", *names)]
+            out.append(f"| {label} | " + " | ".join(
+                "—" if value is None else f"{value:,.0f}" if abs(value) >= 1000
+                else f"{value:.3g}" for value in values) + " |")
+    return out
 
 
 def duration(seconds: float) -> str:

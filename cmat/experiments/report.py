@@ -16,11 +16,13 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from cmat.experiments.baselines import baseline_lines
 from cmat.experiments.claims import judge_claims
 from cmat.experiments.figures import draw
 from cmat.experiments.lines import (
@@ -43,6 +45,8 @@ def write_report(plan: Plan) -> list[Path]:
     """Write the figures, results.md, results.json and marl_eval.json (marl-eval's format,
     cmat.experiments.marl_eval) of `plan`; returns the paths written."""
     lines = collect_lines(plan)
+    for env_id, extra in baseline_lines(plan).items():
+        lines.setdefault(env_id, []).extend(extra)
     metrics = {env.id: task_metric(lines.get(env.id, [])) for env in plan.spec.envs}
     references = load_references()
     suite_aggregates = load_suite_aggregates()
@@ -85,10 +89,12 @@ def summarise(
                 "finals": line.scores(metric),
                 "mean": float(np.mean(scores)) if scores else None,
                 "std": float(np.std(scores)) if scores else None,
-                "steps": line.runs[0].config.budget_steps if line.runs[0].config else None,
+                "steps": (line.runs[0].config.budget_steps
+                          if line.runs and line.runs[0].config else None),
                 "iterations": line.iterations,
                 "consensus_source": (line.runs[0].config.network.consensus_source
                                      if line.algo == "cmat" and line.runs[0].config else None),
+                "metrics": last_metrics(line),
             }
         entry["published"] = matching_references(references, env.id, metric)
         tasks.append(entry)
@@ -109,6 +115,25 @@ def summarise(
     if plan.spec.score_window > 0:
         summary["claims_from_finals"] = judge_claims(summary, plan.spec, scores="finals")
     return summary
+
+
+def last_metrics(line: Line) -> dict[str, float]:
+    """Every evaluation figure of `line` (the return, the win rate, the environment's metrics
+    such as dispatch's service rate) at each seed's last evaluation, averaged over the seeds
+    that define it."""
+    last: dict[str, dict[str, str]] = {}
+    for row in line.rows:
+        if row["kind"] == "eval" and (row["seed"] not in last or
+                                      int(row["env_steps"]) >= int(last[row["seed"]]["env_steps"])):
+            last[row["seed"]] = row
+    values: dict[str, list[float]] = {}
+    for row in last.values():
+        for key, text in row.items():
+            if key not in ("kind", "seed", "env_steps") and text not in ("", None):
+                number = float(text)
+                if not math.isnan(number):
+                    values.setdefault(key, []).append(number)
+    return {key: float(np.mean(numbers)) for key, numbers in values.items()}
 
 
 def training_seconds(run: Run) -> dict[str, float]:

@@ -23,7 +23,7 @@ from cmat.errors import CmatError, read_text
 
 FIGURES = ("main", "ablation", "none")
 SPEC_KEYS = ("name", "description", "steps", "seeds", "seed", "seeds_per_run", "set", "envs",
-             "algos", "variants", "bootstrap_reps", "score_window")
+             "algos", "variants", "bootstrap_reps", "score_window", "baselines")
 ENV_KEYS = ("id", "steps", "set", "label", "unavailable")
 VARIANT_KEYS = ("algos", "envs", "set", "steps", "from", "finetune", "figure", "label")
 
@@ -82,8 +82,11 @@ class ExperimentSpec:
     overrides: tuple[str, ...]
     bootstrap_reps: int
     score_window: float = 0.0
-    """Fraction of a run's env steps over whose greedy evaluations a seed's score is averaged
+    """Fraction of a run's env steps over whose evaluations a seed's score is averaged
     (`cmat.experiments.lines.Line.scores`); 0: the seed's last evaluation."""
+    baselines: tuple[str, ...] = ()
+    """Classical policies evaluated beside the learned lines on the dispatch tasks
+    (`cmat.experiments.baselines`)."""
 
     def variant(self, name: str) -> Variant:
         return next(v for v in self.variants if v.name == name)
@@ -143,7 +146,27 @@ def load_spec(path: Path) -> ExperimentSpec:
         overrides=overrides(raw.get("set"), f"{where}: set"),
         bootstrap_reps=positive_int(raw.get("bootstrap_reps", 2000), f"{where}: bootstrap_reps"),
         score_window=fraction(raw.get("score_window", 0.0), f"{where}: score_window"),
+        baselines=baseline_list(raw.get("baselines"), ids, f"{where}: baselines"),
     )
+
+
+def baseline_list(value: Any, ids: list[str], where: str) -> tuple[str, ...]:
+    """The spec's `baselines`: names of `cmat.envs.dispatch.baselines.POLICIES`, for a spec
+    with a dispatch task."""
+    if value is None:
+        return ()
+    from cmat.envs.dispatch.baselines import POLICIES
+
+    names = tuple(str(name) for name in listed(value, where))
+    unknown = [name for name in names if name not in POLICIES]
+    if unknown:
+        raise CmatError(f"{where}: unknown baseline {unknown[0]!r}; available: "
+                        f"{', '.join(POLICIES)}")
+    if len(set(names)) != len(names):
+        raise CmatError(f"{where}: lists {min(n for n in names if names.count(n) > 1)!r} twice")
+    if not any(env_id.startswith("dispatch:") for env_id in ids):
+        raise CmatError(f"{where}: baselines apply to dispatch tasks, and this spec has none")
+    return names
 
 
 def env_entry(item: Any, steps: int, where: str) -> EnvEntry:

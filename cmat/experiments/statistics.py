@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from cmat.experiments.baselines import BASELINE_VARIANT
 from cmat.experiments.lines import Line
 from cmat.experiments.spec import ExperimentSpec
 
@@ -58,7 +59,7 @@ def aggregate(
     the `matrix:` games where another task qualifies (claim (e)'s games, where every line may
     score the optimum in every seed, would add a constant to every line); None when no task has
     two lines to compare."""
-    everywhere = {v.name for v in spec.variants if v.envs is None}
+    everywhere = {v.name for v in spec.variants if v.envs is None} | {BASELINE_VARIANT}
     labels: list[str] = []
     for task_lines in lines.values():
         for line in task_lines:

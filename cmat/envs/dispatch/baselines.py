@@ -18,7 +18,9 @@ environment's state that return the fleet's actions [n] (stay 0, take candidate 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -103,6 +105,27 @@ def evaluate(env: DispatchEnv, policy: str, episodes: int, seed: int = 0) -> dic
         returns += np.asarray(timestep.reward)
     metrics = episode_metrics(state.stats, env.episode_minutes)
     return {"episode_return": returns, **{k: np.asarray(v) for k, v in metrics.items()}}
+
+
+def evaluate_means(
+    env: DispatchEnv, policy: str, episodes: int, seed: int = 0
+) -> dict[str, float]:
+    """`evaluate`'s figures averaged over the episodes: each metric over the episodes that
+    define it (NaN where none does, e.g. waits with no order served)."""
+    result = evaluate(env, policy, episodes, seed)
+    return {name: float(values[~np.isnan(values)].mean()) if (~np.isnan(values)).any()
+            else math.nan for name, values in result.items()}
+
+
+def baseline_env(env_id: str, env_kwargs: dict[str, Any]) -> DispatchEnv:
+    """The dispatch environment `env_id` with `env_kwargs`; CmatError where `env_id` is not a
+    dispatch task (only dispatch tasks have classical baselines)."""
+    from cmat.envs import make_env
+
+    env = make_env(env_id, **env_kwargs)
+    if not isinstance(env, DispatchEnv):
+        raise CmatError(f"baselines evaluate dispatch tasks only, not {env_id}")
+    return env
 
 
 def host_views(state: DispatchState) -> list[Candidates]:
