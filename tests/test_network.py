@@ -13,6 +13,7 @@ import pytest
 from cmat.algorithms.cmat import CMAT
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
+from cmat.networks.cmat import SCAN_ITERATIONS, ConsensusDecoder
 from cmat.networks.heads import SharedInputDense, action_distribution
 from cmat.networks.layers import DecoderBlock, MultiHeadAttention, dense
 
@@ -150,3 +151,39 @@ def test_m_zero_uses_e0_alone() -> None:
     assert "decoder" not in params["params"]
     out = jax.jit(algorithm.network.apply)(params, obs, mask)
     assert out.consensus.shape == (3, 32)
+
+
+@pytest.mark.parametrize("iterations", [1, 4, 9])
+def test_scanned_consensus_iterations_equal_unrolled_ones(iterations: int) -> None:
+    """The decoder's scanned path (large m) has the unrolled path's parameters and gives its
+    consensus sequence and gradients up to float rounding."""
+    e0 = jax.random.normal(jax.random.PRNGKey(1), (3, 16))
+    encoded = jax.random.normal(jax.random.PRNGKey(2), (3, N_AGENTS, 16))
+    unrolled, scanned = (ConsensusDecoder(16, 2, 2, iterations, scan=scan)
+                         for scan in (False, True))
+    params = unrolled.init(jax.random.PRNGKey(0), e0, encoded)
+    assert (jax.tree.map(jnp.shape, scanned.init(jax.random.PRNGKey(0), e0, encoded))
+            == jax.tree.map(jnp.shape, params))
+    np.testing.assert_allclose(scanned.apply(params, e0, encoded),
+                               unrolled.apply(params, e0, encoded), rtol=1e-5, atol=1e-5)
+
+    def gradient(decoder: ConsensusDecoder) -> list[jax.Array]:
+        loss = lambda p: jnp.sum(jnp.sin(decoder.apply(p, e0, encoded)))  # noqa: E731
+        return jax.tree.leaves(jax.grad(loss)(params))
+
+    for scanned_grad, unrolled_grad in zip(gradient(scanned), gradient(unrolled)):
+        np.testing.assert_allclose(scanned_grad, unrolled_grad, rtol=1e-4, atol=1e-5)
+
+
+def test_a_scanned_decoder_keeps_order_independence() -> None:
+    """m above SCAN_ITERATIONS: permuting the agents permutes the policies and keeps the
+    value and the consensus."""
+    algorithm, params, obs, mask = build(True, consensus_iterations=SCAN_ITERATIONS + 3)
+    permutation = np.array([3, 0, 4, 1, 2])
+    apply = jax.jit(algorithm.network.apply)
+    original, permuted = apply(params, obs, mask), apply(params, obs[:, permutation],
+                                                         mask[:, permutation])
+    np.testing.assert_allclose(permuted.value, original.value, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(permuted.consensus, original.consensus, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(permuted.action_params, original.action_params[:, permutation],
+                               rtol=1e-5, atol=1e-5)

@@ -85,12 +85,15 @@ class MultiHeadAttention(nn.Module):
         return self.split_heads(self.key(memory)), self.split_heads(self.value(memory))
 
     def attend(
-        self, x: jax.Array, keys: jax.Array, values: jax.Array, causal: bool = False
+        self, x: jax.Array, keys: jax.Array, values: jax.Array, causal: bool = False,
+        visible: jax.Array | None = None,
     ) -> jax.Array:
-        """Query positions of `x` attend to the given keys: all of them, or with `causal`,
-        position k to keys 0..k only."""
+        """Query positions of `x` attend to the given keys: all of them, with `causal`
+        position k to keys 0..k only, with `visible` [keys] (bool) the visible keys only."""
         queries = self.split_heads(self.query(x)) / np.sqrt(self.n_embd // self.n_head)
         logits = jnp.einsum("...qd,...kd->...qk", queries, keys)
+        if visible is not None:
+            logits = jnp.where(visible, logits, jnp.finfo(logits.dtype).min)
         if causal:
             mask = jnp.tril(jnp.ones((x.shape[-2], keys.shape[-2]), dtype=bool))
             logits = jnp.where(mask, logits, jnp.finfo(logits.dtype).min)
@@ -197,6 +200,25 @@ class DecoderBlock(nn.Module):
         the earlier tokens (`extend`), None at position 0."""
         cache = extend(cache, self.self_attention.project_memory(token), position, length)
         x = self.norms[0](token + self.self_attention.attend(token, *filled(cache, position)))
+        x = self.norms[1](x + self.cross_attention.attend(x, *encoded))
+        x = self.norms[2](x + self.feed_forward(x))
+        return x, cache
+
+    def empty_cache(self, token: jax.Array, length: int) -> KeyValues:
+        """Zero keys and values of `length` positions for tokens like `token` [..., d]."""
+        shape = (*token.shape[:-1], self.n_head, length, self.n_embd // self.n_head)
+        return jnp.zeros(shape, token.dtype), jnp.zeros(shape, token.dtype)
+
+    def step_at(
+        self, token: jax.Array, cache: KeyValues, encoded: KeyValues, position: jax.Array
+    ) -> tuple[jax.Array, KeyValues]:
+        """`step` at a traced `position`: token [..., 1, d] is written into the cache of every
+        position (`empty_cache`) and attends to positions 0..position, the others masked."""
+        new = self.self_attention.project_memory(token)
+        cache = (jax.lax.dynamic_update_slice_in_dim(cache[0], new[0], position, axis=-2),
+                 jax.lax.dynamic_update_slice_in_dim(cache[1], new[1], position, axis=-2))
+        visible = jnp.arange(cache[0].shape[-2]) <= position
+        x = self.norms[0](token + self.self_attention.attend(token, *cache, visible=visible))
         x = self.norms[1](x + self.cross_attention.attend(x, *encoded))
         x = self.norms[2](x + self.feed_forward(x))
         return x, cache
