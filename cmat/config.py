@@ -88,9 +88,9 @@ class NetworkConfig:
     """Sable with `recurrent`: scale in [0, 1] of every head's decay κ (Mava's
     `decay_scaling_factor`, mava/configs/network/rec_retention.yaml)."""
     retention_chunk: int | None = None
-    """Sable with `recurrent`: timesteps per chunk of the chunkwise training pass, a divisor of
-    rollout_length (memory O(chunk²) instead of O(rollout_length²)); None: the whole rollout in
-    one parallel pass (Mava's default)."""
+    """Sable with `recurrent`: timesteps per chunk of the chunkwise training pass (memory
+    O(chunk²) instead of O(rollout_length²); a pass's last chunk is shorter where the chunk does
+    not divide its steps); None: the whole rollout in one parallel pass (Mava's default)."""
     log_std_init: float = 1.0
     """Initial learned log-std of continuous heads; std = sigmoid(log_std) · 0.5, so 1 starts
     at std ≈ 0.37 (the reference MAT Decoder's `torch.ones(action_dim)`)."""
@@ -316,15 +316,18 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"got {net.consensus_source!r}"),
         (0.0 <= net.retention_decay <= 1.0,
          f"network.retention_decay must be in [0, 1], got {net.retention_decay}"),
-        (net.retention_chunk is None or (net.retention_chunk > 0
-                                         and config.rollout_length % net.retention_chunk == 0),
-         f"network.retention_chunk ({net.retention_chunk}) must divide rollout_length "
-         f"({config.rollout_length})"),
+        (net.retention_chunk is None or net.retention_chunk > 0,
+         f"network.retention_chunk must be > 0 or null, got {net.retention_chunk}"),
         (not net.recurrent or ppo.num_minibatches <= 0
          or config.num_envs % ppo.num_minibatches == 0,
          f"with network.recurrent, minibatches are whole sequences: num_envs "
          f"({config.num_envs}) must be divisible by ppo.num_minibatches "
          f"({ppo.num_minibatches})"),
+        (0 < ppo.clip_eps < 1, f"ppo.clip_eps must be in (0, 1), got {ppo.clip_eps}"),
+        (config.steps_per_update > 1,
+         f"num_envs * rollout_length must be at least 2, got {config.steps_per_update}: "
+         f"advantages are normalised over an update's samples, which makes a single "
+         f"sample's advantage 0 and stops learning"),
         (ppo.epochs > 0, f"ppo.epochs must be > 0, got {ppo.epochs}"),
         (ppo.num_minibatches > 0, f"ppo.num_minibatches must be > 0, got {ppo.num_minibatches}"),
         (ppo.num_minibatches <= 0 or config.steps_per_update % ppo.num_minibatches == 0,

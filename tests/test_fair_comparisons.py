@@ -621,6 +621,7 @@ def test_eval_reports_the_budget(tmp_path: Path, capsys: pytest.CaptureFixture[s
     "ppo.max_grad_norm=0", "ppo.max_grad_norm=-1", "ppo.clip_eps=0", "ppo.adam_eps=-1",
     "ppo.huber_delta=0", "ppo.clip_eps=1.5", "ppo.ent_coef=-0.1", "ppo.value_coef=-1",
     "ppo.lr=nan", "ppo.gamma=inf", "network.init_gain=0", "ppo.order_loss_coef=-1",
+    "ppo.clip_eps=1.0", "network.retention_chunk=0",
 ])
 def test_out_of_range_numbers_are_one_error_line(
     override: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -630,6 +631,19 @@ def test_out_of_range_numbers_are_one_error_line(
     assert code == 2
     line = one_error_line(capsys.readouterr().err)
     assert override.split("=")[0] in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("algo", ["cmat", "mappo", "sable"])
+def test_one_sample_per_update_is_an_error_not_a_run_that_never_learns(
+    algo: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Advantages normalised over one sample are all 0: such a run would never move."""
+    out = tmp_path / "run"
+    assert main(["train", "--env", "matrix:fig1", "--algo", algo, "--set", "num_envs=1",
+                 "rollout_length=1", "ppo.num_minibatches=1", "--out", str(out)]) == 2
+    assert "num_envs * rollout_length must be at least 2, got 1" in one_error_line(
+        capsys.readouterr().err)
     assert not out.exists()
 
 

@@ -79,7 +79,7 @@ def random_tokens(seed: int) -> tuple[jax.Array, ...]:
 
 
 @pytest.mark.parametrize("causal", [False, True])
-@pytest.mark.parametrize("chunk_steps", [1, 2, 3])
+@pytest.mark.parametrize("chunk_steps", [1, 2, 3, 4, 5])
 def test_retention_parallel_chunkwise_and_recurrent_forms_agree(
     causal: bool, chunk_steps: int
 ) -> None:
@@ -451,9 +451,14 @@ def test_recurrent_sable_remembers_the_cue_through_the_host_runner() -> None:
 
 
 @pytest.mark.slow
-def test_recurrent_sable_trains_and_resumes_through_the_cli(tmp_path: Path) -> None:
+@pytest.mark.parametrize("chunk", [None, 2, 5])
+def test_recurrent_sable_trains_and_resumes_through_the_cli(
+        tmp_path: Path, chunk: int | None) -> None:
+    """With the whole rollout in one pass, and in chunks that do or do not divide it (the
+    value pass covers one step more than the rollout)."""
     out = tmp_path / "run"
-    args = ["train", "--out", str(out), "--steps", "96", "--set", *RECURRENT[1:],
+    chunked = [] if chunk is None else [f"network.retention_chunk={chunk}"]
+    args = ["train", "--out", str(out), "--steps", "96", "--set", *RECURRENT[1:], *chunked,
             "log_interval=1", "--algo", "sable"]
     assert main(args) == 0
     assert main(["train", "--resume", str(out), "--steps", "144"]) == 0

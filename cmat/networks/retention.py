@@ -74,10 +74,10 @@ def retention_chunkwise(
     q: jax.Array, k: jax.Array, v: jax.Array, state: jax.Array, kappa: jax.Array,
     starts: jax.Array, causal: bool, chunk_steps: int,
 ) -> tuple[jax.Array, jax.Array]:
-    """`retention_parallel` over chunks of `chunk_steps` timesteps (which must divide T), the
-    state carried from chunk to chunk: memory O(chunk²) instead of O(T²). Same shapes."""
-    num_steps = q.shape[0]
-    chunks = num_steps // chunk_steps
+    """`retention_parallel` over chunks of `chunk_steps` timesteps, the last one shorter where
+    `chunk_steps` does not divide T (a value pass covers a rollout's T + 1 steps), the state
+    carried from chunk to chunk: memory O(chunk²) instead of O(T²). Same shapes."""
+    full = q.shape[0] // chunk_steps * chunk_steps
 
     def chunk(
         state: jax.Array, xs: tuple[jax.Array, jax.Array, jax.Array, jax.Array]
@@ -87,10 +87,17 @@ def retention_chunkwise(
         return state, out
 
     def split(x: jax.Array) -> jax.Array:
-        return x.reshape(chunks, chunk_steps, *x.shape[1:])
+        return x[:full].reshape(full // chunk_steps, chunk_steps, *x.shape[1:])
 
-    state, outputs = jax.lax.scan(chunk, state, (split(q), split(k), split(v), split(starts)))
-    return outputs.reshape(q.shape[0], *outputs.shape[2:]), state
+    parts = []
+    if full:
+        state, outputs = jax.lax.scan(chunk, state, (split(q), split(k), split(v), split(starts)))
+        parts.append(outputs.reshape(full, *outputs.shape[2:]))
+    if full < q.shape[0]:
+        rest, state = retention_parallel(q[full:], k[full:], v[full:], state, kappa,
+                                         starts[full:], causal)
+        parts.append(rest)
+    return jnp.concatenate(parts), state
 
 
 def decay_state(state: jax.Array, kappa: jax.Array, start: jax.Array) -> jax.Array:
@@ -162,8 +169,8 @@ class MultiScaleRetention(nn.Module):
         starts: jax.Array, chunk_steps: int | None = None,
     ) -> tuple[jax.Array, jax.Array]:
         """Training form over T timesteps: tokens [T, N, d], state [H, hs, hs], starts [T] ->
-        (outputs [T, N, d], state after them). `chunk_steps` (dividing T) bounds memory by
-        the chunkwise form; None computes all T at once."""
+        (outputs [T, N, d], state after them). `chunk_steps` bounds memory by the chunkwise
+        form; None computes all T at once."""
         q, k, v = (self.heads(x, w) for x, w in ((query, self.w_q), (key, self.w_k),
                                                   (value, self.w_v)))
         if chunk_steps is None or chunk_steps >= query.shape[0]:
