@@ -302,10 +302,23 @@ def train_command(args: argparse.Namespace) -> None:
         return
     trainer = build_trainer(config)
     out = None if args.out is None else RunDir.check_free(args.out).path
+    print(budget_note(config, sources["total_steps"]), flush=True)
     start = trainer.init()  # an environment that fails at reset leaves no run directory
     run_dir = (RunDir.create_named(default_out(config), config, sources) if out is None
                else RunDir.create(out, config, sources))
     train_into(trainer, run_dir, resume=False, start=start)
+
+
+def budget_note(config: TrainConfig, source: str) -> str:
+    """The line `cmat train` starts with: the env steps each seed trains and where that budget
+    comes from, and the rounding where the budget is not whole updates."""
+    note = (f"training {config.budget_steps:,} env steps per seed ({config.seeds} seed"
+            f"{'' if config.seeds == 1 else 's'}); total_steps {config.total_steps:,} from "
+            f"{source}")
+    if config.budget_steps != config.total_steps:
+        note += (f", rounded up to whole updates of num_envs × rollout_length = "
+                 f"{config.steps_per_update:,} steps")
+    return note
 
 
 def flag_overrides(flags: dict[str, str | int | None]) -> list[str]:

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from test_rundir import lock_held_elsewhere
 
+from cmat import cli
 from cmat.cli import main
 from cmat.config import load_yaml, validate
 from cmat.resolve import load_config
@@ -476,3 +477,18 @@ def test_a_run_in_training_elsewhere_or_complete_is_left_as_it_is(
         assert f"in use by another cmat process (pid {pid})" in line
         assert main(["eval", "--run", str(run_copy), "--episodes", "2"]) == 0
         assert snapshot(run_copy) == held
+
+
+@pytest.mark.parametrize(("argv", "note"), [
+    (["--steps", "500"], "training 800 env steps per seed (1 seed); total_steps 500 from "
+     "command line, rounded up to whole updates of num_envs × rollout_length = 400 steps"),
+    (["--seeds", "2"], "training 4,000 env steps per seed (2 seeds); total_steps 4,000 from "
+     "suite matrix"),
+])
+def test_train_says_what_budget_it_starts_and_where_it_comes_from(
+    argv: list[str], note: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    monkeypatch.setattr(cli, "train_into", lambda *args, **kwargs: None)
+    assert main(["train", "--env", "matrix:fig1", *argv, "--out", str(tmp_path / "run")]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == note
