@@ -239,13 +239,33 @@ class RunDir:
     def write_config(self, config: TrainConfig, sources: ConfigSources | None = None) -> None:
         atomic_write(self.config_path, to_yaml(config, sources).encode())
 
-    def save_checkpoint(self, data: bytes, env_steps: int) -> None:
-        header = {"env_steps": env_steps, "size": len(data), "sha256": sha256(data)}
+    def save_checkpoint(
+        self, data: bytes, env_steps: int, network: dict[str, Any] | None = None
+    ) -> None:
+        """Write the checkpoint: a header (env steps, size, checksum and, given, the `network`
+        config the parameters belong to) and the trainer's bytes."""
+        header: dict[str, Any] = {"env_steps": env_steps, "size": len(data),
+                                  "sha256": sha256(data)}
+        if network is not None:
+            header["network"] = network
         self.checkpoint_path.parent.mkdir(exist_ok=True)
         atomic_write(
             self.checkpoint_path,
             CHECKPOINT_MAGIC + json.dumps(header).encode() + b"\n" + data,
         )
+
+    def checkpoint_network(self) -> dict[str, Any] | None:
+        """The network config the latest checkpoint's header records (None: a checkpoint from
+        before headers recorded it, or none)."""
+        try:
+            with self.checkpoint_path.open("rb") as file:
+                if file.read(len(CHECKPOINT_MAGIC)) != CHECKPOINT_MAGIC:
+                    return None
+                header = json.loads(file.readline())
+        except (OSError, ValueError):
+            return None
+        network = header.get("network") if isinstance(header, dict) else None
+        return network if isinstance(network, dict) else None
 
     def load_checkpoint(self) -> tuple[bytes, int]:
         """The trainer bytes and env steps of the latest checkpoint, checked against its header."""

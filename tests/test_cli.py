@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from test_rundir import lock_held_elsewhere
 
 from cmat import cli
@@ -492,3 +493,21 @@ def test_train_says_what_budget_it_starts_and_where_it_comes_from(
     monkeypatch.setattr(cli, "train_into", lambda *args, **kwargs: None)
     assert main(["train", "--env", "matrix:fig1", *argv, "--out", str(tmp_path / "run")]) == 0
     assert capsys.readouterr().out.splitlines()[0] == note
+
+
+@pytest.mark.parametrize(("field", "value"), [("n_head", 2), ("consensus_source", "last")])
+def test_a_network_edited_in_config_yaml_is_refused_not_evaluated_with_old_weights(
+    run_copy: Path, field: str, value: object, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Fields that leave the parameters' shapes alone (heads split the same width; the
+    consensus source reads the same weights) would otherwise restore silently."""
+    config = yaml.safe_load((run_copy / "config.yaml").read_text())
+    assert config["network"][field] != value
+    config["network"][field] = value
+    (run_copy / "config.yaml").write_text(yaml.safe_dump(config))
+    for argv in (["eval", "--run", str(run_copy)],
+                 ["train", "--resume", str(run_copy), "--steps", "3000"]):
+        assert main(argv) == 2
+        line = one_error_line(capsys.readouterr().err)
+        assert f"network.{field} is {value!r} there" in line
+        assert "a run's network cannot change" in line

@@ -9,6 +9,8 @@ evaluation semantics (`cmat.runners.evaluation`).
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from typing import Any, Protocol
 
 import flax.serialization
@@ -183,6 +185,12 @@ def restore_state(
     return state
 
 
+def network_record(config: TrainConfig) -> dict[str, Any]:
+    """`config.network` as the checkpoint header records it (JSON values)."""
+    record: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(config.network)))
+    return record
+
+
 def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
     """The state in `run_dir`'s latest checkpoint, restored by `trainer` (built from the run's
     config.yaml), and its env steps per seed.
@@ -195,6 +203,17 @@ def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
     from cmat.version import __version__
 
     data, env_steps = run_dir.load_checkpoint()
+    recorded = run_dir.checkpoint_network()
+    if recorded is not None:
+        expected = network_record(trainer.config)
+        changed = [name for name in recorded if name in expected
+                   and recorded[name] != expected[name]]
+        if changed:
+            name = changed[0]
+            raise CmatError(
+                f"{run_dir.config_path} does not match its checkpoint: network.{name} is "
+                f"{expected[name]!r} there, the checkpoint's parameters belong to "
+                f"network.{name} = {recorded[name]!r}; a run's network cannot change")
     try:
         state = trainer.from_bytes(data)
     except CmatError as error:

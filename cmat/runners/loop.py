@@ -21,6 +21,7 @@ from cmat.config import TrainConfig
 from cmat.errors import CmatError
 from cmat.plots import plot_runs
 from cmat.rundir import DIAGNOSTIC_COLUMNS, PER_RUN_PREFIXES, Row, RunDir, Session
+from cmat.runners.base import network_record
 
 if TYPE_CHECKING:
     from cmat.runners.base import Trainer, TrainerState
@@ -65,7 +66,7 @@ def train_locked(
     else:
         state = trainer.init() if start is None else start
         done = trainer.env_steps(state)
-        run_dir.save_checkpoint(trainer.to_bytes(state), done)
+        run_dir.save_checkpoint(trainer.to_bytes(state), done, network_record(config))
     session = Session(run_dir, done)
     watch = EpisodeEndWatch(config.env, trainer.env_spec.max_episode_steps)
     remaining = (config.budget_steps - done) // config.steps_per_update
@@ -234,7 +235,7 @@ def run_chunk(
     rows = seed_rows("train", train, config.seed) + seed_rows("eval", evaluation, config.seed)
     run_dir.append_metrics(rows)
     log_scalars(writer, rows, steps, steps_per_second)
-    run_dir.save_checkpoint(trainer.to_bytes(state), steps)
+    run_dir.save_checkpoint(trainer.to_bytes(state), steps, network_record(config))
     bar.set_postfix(postfix(evaluation, trainer.env_spec.has_win_rate), refresh=False)
     bar.update(steps - before)
     return state
