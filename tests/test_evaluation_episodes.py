@@ -92,3 +92,27 @@ def test_reports_name_the_runs_evaluated_under_the_old_protocol(run: Path, tmp_p
     assert "1 of 3 runs were evaluated under the old protocol" in text
     assert text.endswith(": a/cmat-s0-2.")
     assert old_protocol_text({"runs": summary["runs"][1:]}) == ""
+
+
+@pytest.mark.parametrize("slots", [4, 7])
+def test_more_episodes_than_slots_play_one_after_another_and_count_each_once(
+        slots: int) -> None:
+    """A fresh greedy policy plays the same joint action in every episode of a one-step matrix
+    game whose payoffs are all positive, so every episode returns the same: the mean over 10
+    episodes played in fewer slots (1 to 3 episodes each) is that return."""
+    import jax
+
+    from cmat.algorithms import build_algorithm
+    from cmat.envs import make_env
+    from cmat.resolve import load_config
+    from cmat.runners.evaluation import evaluate_in_graph
+
+    config = load_config(overrides=["env=matrix:fig1", "env_kwargs.payoff=[[10,4],[6,8]]"])
+    env = make_env(config.env, **config.env_kwargs)
+    algorithm = build_algorithm(config.algo, config.network, env.spec, config.ppo)
+    _, timestep = env.reset(jax.random.PRNGKey(0))
+    params = algorithm.init(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
+    one = evaluate_in_graph(env, algorithm, params, jax.random.PRNGKey(2), 1)
+    many = evaluate_in_graph(env, algorithm, params, jax.random.PRNGKey(2), 10, max_slots=slots)
+    assert float(many["episode_return"]) == pytest.approx(float(one["episode_return"]))
+    assert float(one["episode_return"]) in (10.0, 4.0, 6.0, 8.0)

@@ -1,4 +1,4 @@
-"""Greedy evaluation, with one episode semantics for in-graph and host runs.
+"""Evaluation, with one episode semantics for in-graph and host runs.
 
 `episodes` episodes per seed are played on `slots` environments, each slot playing its quota
 (`split_evenly(episodes, slots)`) of whole episodes one after another. The score is the mean
@@ -6,9 +6,9 @@ return over the `episodes` episodes and the fraction of them won; a slot whose l
 episode has not ended when the step limit (quota × the environment's episode limit) is reached
 counts its running return. Episodes past a slot's quota are played but not counted, so short
 episodes are not over-counted. In-graph runs use one slot per episode (every episode runs in
-parallel inside the program); host runs min(episodes, num_envs) slots, since each slot is a
-simulator. The bookkeeping (`EpisodeTally`) is the same code in both, on jax.numpy inside the
-program and on NumPy in the host loop.
+parallel inside the program) up to `EVAL_SLOTS` slots; host runs min(episodes, num_envs) slots,
+since each slot is a simulator. The bookkeeping (`EpisodeTally`) is the same code in both, on
+jax.numpy inside the program and on NumPy in the host loop.
 """
 
 from __future__ import annotations
@@ -91,19 +91,28 @@ def tally_result(
     }
 
 
+EVAL_SLOTS = 1024
+"""The most environments an in-graph evaluation steps at once; more episodes than this play
+one after another in them (`evaluate_in_graph`), so memory stays bounded however many are
+asked for."""
+
+
 def evaluate_in_graph(
     env: MarlEnv, algorithm: Algorithm, params: Params, rng: jax.Array, episodes: int,
-    sample: bool = False,
+    sample: bool = False, max_slots: int = EVAL_SLOTS,
 ) -> dict[str, jax.Array]:
-    """`episodes` episodes of one seed in parallel inside the program (one slot each), acting
-    greedily or, with `sample`, by sampling the policy (`TrainConfig.eval_actions`)."""
+    """`episodes` episodes of one seed inside the program, acting greedily or, with `sample`,
+    by sampling the policy (`TrainConfig.eval_actions`): one slot per episode up to
+    `max_slots`, beyond that `max_slots` slots playing their quotas (module docstring)."""
     spec = env.spec
+    slots = min(episodes, max_slots)
     reset_key, rng = jax.random.split(rng)
-    env_state, timestep = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
+    env_state, timestep = jax.vmap(env.reset)(jax.random.split(reset_key, slots))
     greedy = jax.vmap(algorithm.greedy_with_memory, in_axes=(None, 0, 0, 0, 0))
     act = jax.vmap(algorithm.act_with_memory, in_axes=(None, 0, 0, 0, 0, 0, 0))
-    memory = initial_memories(algorithm, episodes)
-    quota = jnp.ones(episodes, jnp.int32)
+    memory = initial_memories(algorithm, slots)
+    shares = split_evenly(episodes, slots)
+    quota = jnp.asarray(shares, jnp.int32)
 
     Carry = tuple[Any, TimeStep, EpisodeTally, Any]
 
@@ -112,7 +121,7 @@ def evaluate_in_graph(
         if sample:
             key, act_key = jax.random.split(key)
             acted, memory = act(params, memory, timestep.obs, timestep.action_mask,
-                                jax.random.split(act_key, episodes), timestep.global_state,
+                                jax.random.split(act_key, slots), timestep.global_state,
                                 timestep.done)
             actions = acted.actions
         else:
@@ -120,14 +129,14 @@ def evaluate_in_graph(
                 params, memory, timestep.obs, timestep.action_mask, timestep.done
             )
         env_state, timestep = jax.vmap(env.step)(
-            jax.random.split(key, episodes), env_state, env_actions(spec, actions)
+            jax.random.split(key, slots), env_state, env_actions(spec, actions)
         )
         tally = tally_step(tally, timestep.reward, timestep.done, timestep.won, quota, jnp,
                            timestep.metrics)
         return (env_state, timestep, tally, memory), None
 
-    carry = (env_state, timestep, tally_start((episodes,), spec, jnp), memory)
+    carry = (env_state, timestep, tally_start((slots,), spec, jnp), memory)
     (_, _, tally, _), _ = jax.lax.scan(
-        step, carry, jax.random.split(rng, spec.max_episode_steps)
+        step, carry, jax.random.split(rng, int(shares.max()) * spec.max_episode_steps)
     )
     return tally_result(tally, quota, episodes, spec, jnp)
