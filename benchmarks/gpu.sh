@@ -29,6 +29,9 @@
 #       environments (benchmarks/agent_scaling.py; in OUT/scaling/ its JSON after each point,
 #       its table and PNG if the step ends in time);
 #   throughput_3s5z_vs_3s6z_small  3s5z_vs_3s6z at 1,024 environments;
+#   fleet                          decision latency of dispatch fleets of 100 and 1,000 vehicles:
+#       CMAT at m = 5, MAT, Sable and MAPPO, batches of 1 and 64 teams
+#       (benchmarks/decision_latency.py, into OUT/fleet/; timed only, in phase 2);
 #   tests                          the core properties on the GPU: agent permutation, action
 #       masks, chunked gradients, the paper's loss with the joint ratio (phase 1 only).
 # GPU_STEPS="NAME ..." runs the named steps alone. GPU_QUICK=1 runs the same steps at CPU sizes:
@@ -36,7 +39,7 @@
 set -uo pipefail
 out=${1:?usage: gpu.sh OUT}
 steps=(throughput_3s5z_vs_3s6z_large throughput_27m_vs_30m scaling throughput_3s5z_vs_3s6z_small
-  tests)
+  fleet tests)
 read -ra asked <<< "${GPU_STEPS:-${steps[*]}}"
 for name in "${asked[@]}"; do
   [[ " ${steps[*]} " == *" $name "* ]] || {
@@ -58,11 +61,11 @@ export XLA_PYTHON_CLIENT_PREALLOCATE=false
 trap 'kill $(jobs -p) 2>/dev/null' EXIT
 
 if [ "${GPU_QUICK:-0}" = 1 ]; then
-  small=8 large=16 scaling_envs=8 teams="3m 8m"
+  small=8 large=16 scaling_envs=8 teams="3m 8m" fleets="10"
 else
-  small=1024 large=8192 scaling_envs=256 teams="3m 27m_vs_30m 100m"
+  small=1024 large=8192 scaling_envs=256 teams="3m 27m_vs_30m 100m" fleets="100 1000"
 fi
-export small large scaling_envs teams out PY
+export small large scaling_envs teams fleets out PY
 
 compare() {  # compare ENV ENVS ALGO...: throughput.py's algorithm comparison
   local env=$1 envs=$2
@@ -83,6 +86,13 @@ scaling() {
     --envs "$scaling_envs" --updates 1 --lines cmat mat ${COMPILE_ONLY:+--compile-only}
 }
 throughput_3s5z_vs_3s6z_small() { compare 3s5z_vs_3s6z "$small" cmat mat mappo; }
+fleet() {
+  [ -n "${COMPILE_ONLY:-}" ] && return 0
+  local fleet_list
+  read -ra fleet_list <<< "$fleets"
+  "$PY" benchmarks/decision_latency.py --out "$out/fleet" --teams "${fleet_list[@]}" \
+    --lines "cmat m=5" mat sable mappo --batches 1 64 --calls 20 --timeout 60
+}
 tests() {
   "$PY" -m pytest -q -o addopts= -p no:cacheprovider \
     tests/test_network.py::test_permuting_agents_permutes_policies_and_keeps_value_and_consensus \
@@ -141,6 +151,7 @@ selected throughput_3s5z_vs_3s6z_large && step throughput_3s5z_vs_3s6z_large 150
 selected throughput_27m_vs_30m && step throughput_27m_vs_30m 150
 selected scaling && step scaling 200
 selected throughput_3s5z_vs_3s6z_small && step throughput_3s5z_vs_3s6z_small 90
+selected fleet && step fleet 150
 selected tests && settle tests
 echo "== done after $(elapsed) s"
 ls -la "$out"
