@@ -277,7 +277,7 @@ def test_suite_settings_are_mavas_with_their_source(env_id: str) -> None:
     assert (config.ppo.lr, config.ppo.epochs, config.ppo.num_minibatches) == (2.5e-4, 4, 2)
     assert (config.num_envs, config.rollout_length, config.env_kwargs) == (
         32, 128, {"agent_id": True})
-    assert config.total_steps == 1220 * 128 * 16 * 2
+    assert config.total_steps == 1000 * 128 * 16 * 2
     assert config.total_steps % (config.num_envs * config.rollout_length) == 0
     for name in ("ppo.lr", "ppo.clip_eps", "num_envs", "total_steps", "env_kwargs"):
         assert sources[name] == f"suite {suite}", name

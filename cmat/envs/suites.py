@@ -29,10 +29,13 @@ SMAC_SETTINGS: dict[str, Any] = {
 }
 """MAT's SMAC column: 32 rollout threads × 100 steps, 15 epochs, one minibatch, lr 5e-4."""
 
-MAVA_BUDGET = 1220 * 128 * 16 * 2
-"""Env steps per seed of Mava's default run (4,997,120): `num_updates` 1220 × `rollout_length`
-128 × `num_envs` 16 × `update_batch_size` 2 (instadeepai/Mava `mava/configs/system/ppo/
-ff_mappo.yaml` at 7d77035, `mava/configs/arch/anakin.yaml` at 0258bb8)."""
+MAVA_BUDGET = 1000 * 128 * 16 * 2
+"""Env steps per seed of Mava's default Sable run (4,096,000): `num_updates` 1000 ×
+`rollout_length` 128 × `num_envs` 16 × `update_batch_size` 2 (instadeepai/Mava
+`mava/configs/system/sable/ff_sable.yaml` at b53e2de, the file the PPO settings below come
+from; `mava/configs/arch/anakin.yaml` at 0258bb8). Mava's `ppo/ff_mappo.yaml` at 7d77035 runs
+1220 updates; one budget serves every line of a suite, and the Sable comparison is what these
+suites are for."""
 
 MAVA_SETTINGS: dict[str, Any] = {
     "rollout_length": 128, "num_envs": 32, "total_steps": MAVA_BUDGET,
