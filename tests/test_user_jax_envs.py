@@ -495,6 +495,28 @@ def test_bad_ids_are_one_error_line(
     assert message in capsys.readouterr().err
 
 
+def test_a_module_that_turns_on_64_bit_jax_is_one_error_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Training would crash with a traceback deep in the update (float64 against float32
+    branches), even for an environment that returns float32."""
+    (tmp_path / "x64_env.py").write_text(
+        "import jax\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        f"from {HERE} import target_game as make_env\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "run"
+    try:
+        assert main(["train", "--env", "jax:x64_env:make_env", "--steps", "100",
+                     "--out", str(out)]) == 2
+    finally:
+        jax.config.update("jax_enable_x64", False)
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1, error
+    assert "64-bit JAX is on (jax_enable_x64" in error
+    assert not out.exists()
+
+
 @pytest.mark.parametrize(("agents", "choices"), [(3, 3), (2, 5)])
 def test_the_readme_example_env_honours_its_options(
     agents: int, choices: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
