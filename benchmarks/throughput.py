@@ -11,8 +11,10 @@ Breakdown (one process, default config but `--envs` environments): env-only step
 legal actions in the same kind of scan), collection steps/s (CMAT acting + env, no update), full
 training steps/s (collect, target values, GAE, PPO epochs), and the update's achieved FLOP/s
 beside a large matmul's FLOP/s measured in the same process. The update's FLOPs are XLA's cost
-analysis of one compiled gradient step (no scan inside it: the decoder's m iterations are
-unrolled, so every iteration is counted) times epochs × minibatches. Everything is timed after
+analysis of one compiled gradient step times epochs × minibatches: exact up to m = 16
+consensus iterations, which are unrolled; above, the iterations are one scan
+(`cmat.networks.cmat.SCAN_ITERATIONS`), whose body the cost analysis may count once, so the
+FLOP/s figure is a lower bound there. Everything is timed after
 compilation, fastest of `--repeats` runs. Env-only and collection runs alternate, so a change in
 the shared machine's load hits both; besides the ratio of the fastest runs, the table gives the
 median and range of the ratios of the `--repeats` alternating pairs. `XLA_FLAGS` from the
