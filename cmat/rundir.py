@@ -23,6 +23,7 @@ the checkpoint's env_steps belong to a chunk that never finished and are dropped
 from __future__ import annotations
 
 import csv
+import dataclasses
 import fcntl
 import hashlib
 import io
@@ -479,6 +480,13 @@ def atomic_write(path: Path, data: bytes) -> None:
         os.fsync(directory)
     finally:
         os.close(directory)
+
+
+def network_record(config: TrainConfig) -> dict[str, Any]:
+    """`config.network` as a checkpoint header records it (JSON values): the network its
+    parameters belong to (`RunDir.save_checkpoint`, `cmat.runners.base.restore_run`)."""
+    record: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(config.network)))
+    return record
 
 
 EVAL_PROTOCOL = 2

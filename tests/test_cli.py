@@ -495,12 +495,12 @@ def test_train_says_what_budget_it_starts_and_where_it_comes_from(
     assert capsys.readouterr().out.splitlines()[0] == note
 
 
-@pytest.mark.parametrize(("field", "value"), [("n_head", 2), ("consensus_source", "last")])
+@pytest.mark.parametrize(("field", "value"), [("n_head", 2)])
 def test_a_network_edited_in_config_yaml_is_refused_not_evaluated_with_old_weights(
     run_copy: Path, field: str, value: object, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Fields that leave the parameters' shapes alone (heads split the same width; the
-    consensus source reads the same weights) would otherwise restore silently."""
+    """A field that leaves the parameters' shapes alone (heads split the same width) would
+    otherwise restore silently."""
     config = yaml.safe_load((run_copy / "config.yaml").read_text())
     assert config["network"][field] != value
     config["network"][field] = value

@@ -291,14 +291,15 @@ def test_cmat_eval_runs_a_baseline_like_a_trained_policy(
 @pytest.mark.optimised
 def test_mappo_learns_to_beat_random_dispatch_on_a_small_fleet() -> None:
     """Measured (seed 0): greedy return 5.9 at init, 11.5 after 4,800 steps and 12.3 after
-    6,000; random legal 7.75, Hungarian 13.0 on the same task."""
+    6,000 (sampled, the suite's evaluation: 9.4); random legal 7.75, Hungarian 13.0 on the
+    same task. Greedy here: on 12 vehicles the policy has learned to spread them."""
     from cmat.resolve import load_config
     from cmat.runners.trainer import JaxTrainer
 
     config = load_config(overrides=[
         "env=dispatch:grid-12-high", "algo=mappo", "env_kwargs.grid_size=4",
         "env_kwargs.episode_minutes=30", "rollout_length=30", "num_envs=8", "total_steps=6000",
-        "log_interval=20",
+        "log_interval=20", "eval_actions=greedy",
     ])
     trainer = JaxTrainer(config)
     state, _ = trainer.train_chunk(trainer.init())

@@ -58,7 +58,7 @@ def make_user_env(env_id: str, target: str, **kwargs: Any) -> MarlEnv:
     JaxMARL environment, check either kind (module docstring). Raises CmatError (or
     SuiteUnavailable where the module cannot be imported)."""
     factory = load_factory(env_id, target)
-    if jax.config.read("jax_enable_x64"):
+    if jnp.zeros(()).dtype == jnp.float64:
         raise CmatError(
             f"{env_id}: 64-bit JAX is on (jax_enable_x64, e.g. set by the environment's module "
             f"when imported); cmat trains in float32: leave jax_enable_x64 off")

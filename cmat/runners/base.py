@@ -9,8 +9,6 @@ evaluation semantics (`cmat.runners.evaluation`).
 
 from __future__ import annotations
 
-import dataclasses
-import json
 from typing import Any, Protocol
 
 import flax.serialization
@@ -23,7 +21,7 @@ import threadpoolctl
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
-from cmat.rundir import RunDir
+from cmat.rundir import RunDir, network_record
 from cmat.runners.collector import EnvsState
 from cmat.runners.learner import LearnerSetup, LearnerState
 
@@ -185,12 +183,6 @@ def restore_state(
     return state
 
 
-def network_record(config: TrainConfig) -> dict[str, Any]:
-    """`config.network` as the checkpoint header records it (JSON values)."""
-    record: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(config.network)))
-    return record
-
-
 def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
     """The state in `run_dir`'s latest checkpoint, restored by `trainer` (built from the run's
     config.yaml), and its env steps per seed.
@@ -203,6 +195,15 @@ def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
     from cmat.version import __version__
 
     data, env_steps = run_dir.load_checkpoint()
+    try:
+        state = trainer.from_bytes(data)
+    except CmatError as error:
+        written = run_dir.version()
+        hint = (f"does {run_dir.config_path} still describe the run that wrote it?"
+                if written == __version__ else
+                f"the run was written by {f'cmat {written}' if written else 'another cmat version'}"
+                f", this is cmat {__version__}")
+        raise CmatError(f"{run_dir.checkpoint_path}: {error}; {hint}") from None
     recorded = run_dir.checkpoint_network()
     if recorded is not None:
         expected = network_record(trainer.config)
@@ -214,15 +215,6 @@ def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
                 f"{run_dir.config_path} does not match its checkpoint: network.{name} is "
                 f"{expected[name]!r} there, the checkpoint's parameters belong to "
                 f"network.{name} = {recorded[name]!r}; a run's network cannot change")
-    try:
-        state = trainer.from_bytes(data)
-    except CmatError as error:
-        written = run_dir.version()
-        hint = (f"does {run_dir.config_path} still describe the run that wrote it?"
-                if written == __version__ else
-                f"the run was written by {f'cmat {written}' if written else 'another cmat version'}"
-                f", this is cmat {__version__}")
-        raise CmatError(f"{run_dir.checkpoint_path}: {error}; {hint}") from None
     counted = trainer.env_steps(state)
     if counted != env_steps:
         config = trainer.config

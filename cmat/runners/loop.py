@@ -20,8 +20,14 @@ from tqdm import tqdm
 from cmat.config import TrainConfig
 from cmat.errors import CmatError
 from cmat.plots import plot_runs
-from cmat.rundir import DIAGNOSTIC_COLUMNS, PER_RUN_PREFIXES, Row, RunDir, Session
-from cmat.runners.base import network_record
+from cmat.rundir import (
+    DIAGNOSTIC_COLUMNS,
+    PER_RUN_PREFIXES,
+    Row,
+    RunDir,
+    Session,
+    network_record,
+)
 
 if TYPE_CHECKING:
     from cmat.runners.base import Trainer, TrainerState
