@@ -266,3 +266,26 @@ def test_the_compute_line_counts_a_run_that_trained_in_two_places_once_overall()
     assert "distinct" not in compute_text({"runs": one_place,
                                            "compute": compute_totals(one_place)})
     assert compute_text({"runs": [], "compute": {}}) == ""
+
+
+def test_claim_a_compares_cmat_only_with_lines_at_its_budget(tmp_path: Path) -> None:
+    """A MAPPO line given 4x the budget (its variant's own `steps`) beats a CMAT line it would
+    not have beaten at CMAT's budget: it is left out of CMAT's claim (a), not counted against
+    it."""
+    path = tmp_path / "budgets.yaml"
+    path.write_text(yaml.safe_dump({
+        "envs": ["smax:3m"], "algos": ["cmat", "mappo"], "steps": 1000,
+        "variants": {"default": {}, "long": {"algos": ["mappo"], "steps": 4000,
+                                             "label": "(long)"}},
+    }))
+    budgets = load_spec(path)
+    lines = {label: {"variant": variant, "algo": algo, "figures": ["main"], "scores": scores,
+                     "finals": scores, "iterations": 3 if algo == "cmat" else None,
+                     "consensus_source": "mixture" if algo == "cmat" else None}
+             for label, variant, algo, scores in (("CMAT", "default", "cmat", STRONG),
+                                                  ("MAPPO", "default", "mappo", WEAK),
+                                                  ("MAPPO (long)", "long", "mappo", [1.0] * 3))}
+    grid = {"tasks": [{"env": "smax:3m", "label": "3m", "metric": "win_rate", "lines": lines}]}
+    claim = by_key(judge_claims(grid, budgets))["CMAT"]
+    assert [c["y"] for c in claim["comparisons"]] == ["MAPPO"]
+    assert claim["verdict"] == SUPPORTED

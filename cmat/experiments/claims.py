@@ -242,9 +242,11 @@ def judge_claims(
     absent = tuple(ALGORITHM_LABELS[algo] for algo in PAPER_BASELINES if algo not in in_spec)
     claims: list[Claim] = []
     for label in cmat_lines:
-        claims.append(Claim("a", f"{CLAIMS['a']} ({label})", pairs(label, baselines, benchmark),
+        budget = variant_of(label).steps
+        rivals = [y for y in baselines if variant_of(y).steps == budget]  # same budget only
+        claims.append(Claim("a", f"{CLAIMS['a']} ({label})", pairs(label, rivals, benchmark),
                             covered({lines[label]["variant"]}, False),
-                            planned(label, baselines), not_run=absent))
+                            planned(label, rivals), not_run=absent))
     for label in stages:
         others = [o for o in lines if o != label and main(o) and not stage(o)]
         claims.append(Claim("b", f"{CLAIMS['b']} ({label})", pairs(label, others, benchmark),
