@@ -10,24 +10,28 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import os
-import shutil
 import sys
 import textwrap
-import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn
+from typing import NoReturn
 
 from cmat.algorithms import algorithm_class, algorithm_names
+from cmat.api import (
+    build_trainer,
+    default_out,
+    evaluate_run,
+    json_number,
+    start_run,
+    train_into,
+)
 from cmat.config import (
     FINETUNE_MODES,
     INT32_MAX,
     NESTED_FIELDS,
     TrainConfig,
     field_docs,
-    resolve_iterations,
     to_yaml,
     validate,
 )
@@ -37,10 +41,9 @@ from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import resolve_config
 from cmat.rundir import RunDir
-from cmat.runners.loop import resume_is_complete, run_training
+from cmat.runners.loop import resume_is_complete
+from cmat.version import __version__
 
-if TYPE_CHECKING:
-    from cmat.runners.base import Trainer, TrainerState
 
 class Parser(argparse.ArgumentParser):
     """argparse with its usage errors on one line, as every other error of the CLI, pointing
@@ -54,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="cmat", description="Consensus Multi-Agent Transformer: train, evaluate, plot."
     )
+    parser.add_argument("--version", action="version", version=f"cmat {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
 
     train = commands.add_parser("train", help="train a new run or resume one")
@@ -300,25 +304,7 @@ def train_command(args: argparse.Namespace) -> None:
         print(to_yaml(config, sources), end="")
         print(f"# {description}")
         return
-    trainer = build_trainer(config)
-    out = None if args.out is None else RunDir.check_free(args.out).path
-    print(budget_note(config, sources["total_steps"]), flush=True)
-    start = trainer.init()  # an environment that fails at reset leaves no run directory
-    run_dir = (RunDir.create_named(default_out(config), config, sources) if out is None
-               else RunDir.create(out, config, sources))
-    train_into(trainer, run_dir, resume=False, start=start)
-
-
-def budget_note(config: TrainConfig, source: str) -> str:
-    """The line `cmat train` starts with: the env steps each seed trains and where that budget
-    comes from, and the rounding where the budget is not whole updates."""
-    note = (f"training {config.budget_steps:,} env steps per seed ({config.seeds} seed"
-            f"{'' if config.seeds == 1 else 's'}); total_steps {config.total_steps:,} from "
-            f"{source}")
-    if config.budget_steps != config.total_steps:
-        note += (f", rounded up to whole updates of num_envs × rollout_length = "
-                 f"{config.steps_per_update:,} steps")
-    return note
+    start_run(config, sources, args.out)
 
 
 def flag_overrides(flags: dict[str, str | int | None]) -> list[str]:
@@ -340,75 +326,16 @@ def describe_env(config: TrainConfig) -> str:
             f"{config.num_updates:,} updates of {config.steps_per_update:,} steps")
 
 
-def train_into(
-    trainer: Trainer, run_dir: RunDir, resume: bool, start: TrainerState | None = None
-) -> None:
-    """`run_training`, telling the user how to continue if they interrupt it. A new run that
-    stops on a CmatError or an interrupt before its first chunk is written (an environment that
-    fails at its first steps, a non-finite first update, Ctrl-C during the first compile)
-    leaves no directory behind: this process made it and it holds nothing but the config and
-    the initial checkpoint."""
-    try:
-        run_training(trainer, run_dir, resume=resume, start=start)
-    except CmatError as error:
-        if resume or run_dir.metrics_path.exists():
-            raise
-        shutil.rmtree(run_dir.path, ignore_errors=True)
-        raise CmatError(f"{error}; the new run directory {run_dir.path} was removed") from None
-    except KeyboardInterrupt:
-        if resume or run_dir.metrics_path.exists():
-            print(f"cmat: stopped at the last checkpoint; continue with: "
-                  f"cmat train --resume {run_dir.path}", file=sys.stderr)
-        else:
-            shutil.rmtree(run_dir.path, ignore_errors=True)
-            print(f"cmat: stopped before the first update was saved; the new run directory "
-                  f"{run_dir.path} was removed", file=sys.stderr)
-        raise
-    print(f"run directory: {run_dir.path}")
-
-
 def eval_command(args: argparse.Namespace) -> None:
-    if not 0 <= args.seed <= INT32_MAX:
-        raise CmatError(f"--seed must be in [0, {INT32_MAX:,}], got {args.seed:,}")
     if args.baseline is not None:
+        if not 0 <= args.seed <= INT32_MAX:
+            raise CmatError(f"--seed must be in [0, {INT32_MAX:,}], got {args.seed:,}")
         baseline_command(args)
         return
     if args.run is None:
         raise CmatError("cmat eval needs --run DIR (or --baseline NAME with --env ID or --run)")
-    run_dir = RunDir.open(args.run)
-    config = run_dir.config()
-    if args.actions is not None:
-        config = dataclasses.replace(config, eval_actions=args.actions)
-    if args.episodes is not None and not 0 < args.episodes <= INT32_MAX:
-        raise CmatError(f"--episodes must be in [1, {INT32_MAX:,}], got {args.episodes:,}")
-    if args.iterations is not None and config.algo != "cmat":
-        raise CmatError(f"--iterations applies to cmat runs only; {run_dir.path} is a "
-                        f"{config.algo!r} run")
-    from cmat.runners.base import restore_run
-
-    trainer = build_trainer(config)
-    state, env_steps = restore_run(run_dir, trainer)
-    extra: dict[str, object] = {
-        "env_steps": env_steps, "budget_steps": config.budget_steps,
-        "complete": env_steps == config.budget_steps,
-    }
-    if config.algo == "cmat":
-        trained = resolve_iterations(config.network.consensus_iterations,
-                                     trainer.env_spec.num_agents)
-        extra["consensus_iterations"] = trained
-        if args.iterations is not None:
-            trainer, state = with_eval_iterations(config, state, trained, args.iterations)
-            extra["consensus_iterations"] = args.iterations
-    episodes = args.episodes or config.eval_episodes
-    extra["episodes_per_seed"] = episodes
-    extra["actions"] = config.eval_actions
-    extra["episode_seed"] = args.seed
-    result = trainer.evaluate(state, episodes, episode_seed=args.seed)
-    per_seed = [
-        {"seed": config.seed + index,
-         **{name: json_number(values[index]) for name, values in result.items()}}
-        for index in range(config.seeds)
-    ]
+    extra, per_seed = evaluate_run(RunDir.open(args.run), args.episodes, args.actions, args.seed,
+                                   args.iterations)
     print(json.dumps({**extra, "per_seed": per_seed}))
 
 
@@ -435,28 +362,6 @@ def baseline_command(args: argparse.Namespace) -> None:
     summary = {name: json_number(value) for name, value in means.items()}
     print(json.dumps({"baseline": args.baseline, "env": env_id, "episodes_per_seed": episodes,
                       "per_seed": [{"seed": args.seed, **summary}]}))
-
-
-def with_eval_iterations(
-    config: TrainConfig, state: TrainerState, trained: int, iterations: int
-) -> tuple[Trainer, TrainerState]:
-    """A trainer whose network runs `iterations` consensus iterations, and `state` with the
-    decoder's positional table cut to them. Positions past the trained m were never learned, so
-    asking for more is an error rather than an extrapolation."""
-    from cmat.algorithms.cmat_blocks import with_iterations
-
-    if not 0 <= iterations <= trained:
-        raise CmatError(
-            f"--iterations must be in 0..{trained} (the m this run was trained with: the decoder "
-            f"has positional embeddings for {trained} iterations); got {iterations}. "
-            f"Train with a larger network.consensus_iterations to evaluate more"
-        )
-    network = dataclasses.replace(config.network, consensus_iterations=iterations)
-    eval_trainer = build_trainer(dataclasses.replace(config, network=network))
-    learner = dataclasses.replace(
-        state.learner, params=with_iterations(state.learner.params, iterations)
-    )
-    return eval_trainer, dataclasses.replace(state, learner=learner)
 
 
 def finetune_command(args: argparse.Namespace) -> None:
@@ -502,21 +407,3 @@ def render_command(args: argparse.Namespace) -> None:
 def plot_command(args: argparse.Namespace) -> None:
     (plot_diagnostics if args.diagnostics else plot_runs)(args.runs, args.out)
     print(f"wrote {args.out}")
-
-
-def build_trainer(config: TrainConfig) -> Trainer:
-    """The trainer for `config` (`HostTrainer` for host environments, `JaxTrainer` for the
-    others); JAX is imported here, after the log level is set."""
-    from cmat.runners.host import build_trainer as build
-
-    return build(config)
-
-
-def default_out(config: TrainConfig) -> Path:
-    """runs/ENV[-finetune-MODE]-TIMESTAMP (`RunDir.create_named` adds -2, -3, ... if taken)."""
-    stage = f"-finetune-{config.finetune}" if config.finetune else ""
-    return Path("runs") / f"{config.env.replace(':', '_')}{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
-
-
-def json_number(value: float) -> float | None:
-    return None if math.isnan(value) else float(value)

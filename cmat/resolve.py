@@ -10,6 +10,7 @@ of the layers (and the checks that depend on the algorithm) come from the algori
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -52,12 +53,15 @@ def resolve_config(
     overrides: list[str] | tuple[str, ...] = (),
     base: TrainConfig | None = None,
     base_sources: ConfigSources | None = None,
+    values: Mapping[str, Any] | None = None,
 ) -> tuple[TrainConfig, ConfigSources]:
     """A checked config and where each value came from. Layers, later ones winning: the
     dataclass defaults (or `base`, whose values keep `base_sources`), the environment suite's
     settings (cmat.envs.suites), the algorithm's reference defaults (its class's
     `reference_defaults`, then its `task_reference_defaults` for the environment id), its
-    preset, a YAML file, then `key=value` overrides.
+    preset, a YAML file, then `key=value` overrides, then `values` (the Python API's keyword
+    arguments: `{"num_envs": 8, "ppo": {"lr": 1e-4}, "network.n_embd": 32}`, a dotted key
+    naming a field of a section).
 
     Raises CmatError for an unreadable file, a malformed override, an unknown preset or field,
     and every check of `validate` and `check_config`."""
@@ -75,6 +79,8 @@ def resolve_config(
                 raise CmatError(f"override {item!r} must look like key=value")
         if overrides:
             layers.append(("command line", OmegaConf.from_dotlist(list(overrides))))
+        if values:
+            layers.append(("arguments", OmegaConf.create(nested(values))))
         merged = OmegaConf.merge(schema, *(layer for _, layer in layers))
         if base is None:
             layers[:0] = named_layers(merged.env, merged.algo, merged.preset)
@@ -91,6 +97,25 @@ def resolve_config(
     for label, layer in layers:
         sources.update(dict.fromkeys(layer_fields(OmegaConf.to_container(layer)), label))
     return check_config(validate(config)), sources
+
+
+def nested(values: Mapping[str, Any]) -> dict[str, Any]:
+    """`values` with each dotted key (`ppo.lr`) turned into its section's mapping (`ppo:
+    {lr: ...}`), merged with a section given as a mapping."""
+    result: dict[str, Any] = {}
+    for key, value in values.items():
+        section, dot, field = key.partition(".")
+        if dot:
+            entry = result.setdefault(section, {})
+            if not isinstance(entry, dict):
+                raise CmatError(f"{section}: a section (set its keys as {section}.KEY), got "
+                                f"{entry!r}")
+            entry[field] = value
+        elif isinstance(value, Mapping) and isinstance(result.get(key), dict):
+            result[key].update(value)
+        else:
+            result[key] = dict(value) if isinstance(value, Mapping) else value
+    return result
 
 
 TYPE_NAMES = {"Integer": "an integer", "Float": "a number", "Boolean": "true or false",

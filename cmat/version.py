@@ -1,3 +1,3 @@
-"""The installed cmat's version (kept equal to `project.version` in pyproject.toml)."""
+"""The installed cmat's version (pyproject.toml reads it from here)."""
 
 __version__ = "0.1.0"

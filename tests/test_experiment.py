@@ -853,7 +853,7 @@ def test_ray_address_without_ray_is_one_error_line(
     for dry_run in ([], ["--dry-run"]):
         assert main(["experiment", str(path), "--out", str(tmp_path / "out"), "--ray", "auto",
                      *dry_run]) == 2
-        assert "--ray needs Ray: pip install 'cmat[ray]'" in one_error_line(
+        assert "--ray needs Ray: pip install 'cmat-marl[ray]'" in one_error_line(
             capsys.readouterr().err)
     assert not (tmp_path / "out").exists()
 

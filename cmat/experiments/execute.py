@@ -229,7 +229,7 @@ def import_ray() -> Any:
     try:
         import ray
     except ImportError:
-        raise CmatError("--ray needs Ray: pip install 'cmat[ray]'") from None
+        raise CmatError("--ray needs Ray: pip install 'cmat-marl[ray]'") from None
     return ray
 
 

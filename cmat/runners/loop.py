@@ -142,7 +142,7 @@ class WandbWriter:
         try:
             import wandb
         except ImportError:
-            raise CmatError("logger=wandb needs the wandb package: pip install 'cmat[wandb]'") \
+            raise CmatError("logger=wandb needs the wandb package: pip install 'cmat-marl[wandb]'") \
                 from None
         online = os.environ.get("WANDB_MODE") == "online" or (
             "WANDB_MODE" not in os.environ and bool(os.environ.get("WANDB_API_KEY")))
