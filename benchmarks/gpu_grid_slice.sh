@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# A slice of an experiment grid (GPU_SPEC, default experiments/smax_benchmark.yaml, the results
-# page's; experiments/dispatch_large.yaml holds the 500- and 1,000-vehicle fleets) on one GPU
+# A slice of an experiment grid (GPU_SPEC, default smax_benchmark, the results
+# page's; cmat/experiments/specs/dispatch_large.yaml holds the 500- and 1,000-vehicle fleets) on one GPU
 # machine in about 10 minutes, brought back as one archive per run directory.
 #
 # Prepare here: `bash scripts/gpu_wheels.sh` (cmat's dependencies the GPU image lacks, into
@@ -47,7 +47,7 @@ if [ -n "${GPU_GRID_FROM:-}" ]; then
   done
 fi
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
-timeout "$limit" "$PY" -m cmat experiment "${GPU_SPEC:-experiments/smax_benchmark.yaml}" --out "$grid" \
+timeout "$limit" "$PY" -m cmat experiment "${GPU_SPEC:-smax_benchmark}" --out "$grid" \
   --parallel "${GPU_PARALLEL:-7}" --only "$@"
 code=$?
 echo "experiment exit code $code after $(( $(date +%s) - start )) s (124: the time limit)"

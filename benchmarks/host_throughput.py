@@ -7,7 +7,7 @@ For each environment and worker count (0 = in this process), in one run:
 - env-only: the pool steps `--envs` environments with random legal actions (no policy);
 - collection: `HostTrainer.collect` (the jitted policy's call per step plus the pool's step);
 - training: whole `train_chunk`s of `--updates` updates (collection + the jitted PPO update),
-  with the reference MAT settings for the suite (README, shared/reference) unless overridden.
+  with the reference MAT settings for the suite (docs/suites.md) unless overridden.
 Steps/s count environment transitions after compilation, which is reported separately. GRF is
 skipped with a message when gfootball is not installed.
 """
@@ -37,7 +37,8 @@ SUITE_SETTINGS = {
                  "ppo.max_grad_norm=0.5", "env_kwargs.agent_id=true"],
     "grf": ["ppo.epochs=10", "ppo.max_grad_norm=0.5"],
 }
-"""The reference MAT hyper-parameters of each suite (shared/reference/README.md); rollout
+"""The reference MAT hyper-parameters of each suite (the reference MAT implementation's train
+scripts, as in cmat/envs/suites.py); rollout
 length and number of environments come from the command line."""
 
 

@@ -2,8 +2,8 @@
 
     python benchmarks/machine.py             # CPU, cores, memory, JAX and a large matmul's FLOP/s
 
-The kind of machine this project runs on has changed CPU generation between sessions (README,
-Speed: a 2048² fp32 matmul at about 170 GFLOP/s on one, 530 on the next), so steps/s from
+The kind of machine this project runs on has changed CPU generation between sessions (docs/speed.md,
+"The machine": a 2048² fp32 matmul at about 170 GFLOP/s on one, 530 on the next), so steps/s from
 different days compare only through the line each benchmark prints with them.
 """
 

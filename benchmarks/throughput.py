@@ -24,7 +24,8 @@ Algorithm comparison (one process per algorithm, each with its defaults from cma
 `--algo ALGO:KEY=VALUE,...` adds overrides for that line alone, after `--set`'s):
 training steps/s counting all seeds' environment steps, timed on the second chunk. The `mava`
 preset is the configuration at which Mava's MAT was measured on this kind of machine
-(shared/reference/README.md: about 169 steps/s and 13.2 GB peak on 3s5z_vs_3s6z).
+(about 169 steps/s and 13.2 GB peak on 3s5z_vs_3s6z on a slower machine; docs/speed.md compares
+Mava's own MAT run beside cmat on one machine).
 """
 
 from __future__ import annotations

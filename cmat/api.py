@@ -8,7 +8,7 @@
     run.config                  # the resolved TrainConfig (config.yaml)
     run.evaluate(episodes=100)  # fresh evaluation episodes: a DataFrame, one row per seed
     policy = run.policy()       # cmat.Policy, to act in your own loop
-    report = cmat.experiment("experiments/dispatch.yaml", out="runs/dispatch")
+    report = cmat.experiment("dispatch", out="runs/dispatch")
 
 `train` resolves its config through the same layers as `cmat train` (cmat.resolve: defaults,
 suite, algorithm, its task values, preset, YAML file, then the keyword arguments) and runs the
@@ -199,10 +199,10 @@ def experiment(
     only: list[str] | None = None,
     report_only: bool = False,
 ) -> Experiment:
-    """`cmat experiment`: run what is missing of the grid in `spec` (a YAML spec, e.g.
-    experiments/dispatch.yaml) in `out` (default runs/experiments/SPEC_NAME), `parallel` runs
-    at once, only the runs matching the shell patterns `only`, or none with `report_only`;
-    then write its report. Returns the `Experiment`.
+    """`cmat experiment`: run what is missing of the grid in `spec` (a YAML file, or the name
+    of a spec shipped in cmat/experiments/specs, e.g. `dispatch`) in `out` (default
+    runs/experiments/SPEC_NAME), `parallel` runs at once, only the runs matching the shell
+    patterns `only`, or none with `report_only`; then write its report. Returns the `Experiment`.
 
     Raises CmatError for a bad spec or directory, and after reporting, if runs failed."""
     from cmat.experiments.runner import run_experiment

@@ -181,7 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     experiment = commands.add_parser(
         "experiment", help="run a grid of algorithms x environments x seeds x variants"
     )
-    experiment.add_argument("spec", type=Path, metavar="SPEC.yaml", help="experiment spec")
+    experiment.add_argument("spec", type=Path, metavar="SPEC",
+                            help="experiment spec: a YAML file, or the name of one shipped with "
+                                 "cmat (dispatch, smax_benchmark, smoke, ...)")
     experiment.add_argument("--out", type=Path, metavar="DIR",
                             help="experiment directory (default runs/experiments/<spec name>)")
     experiment.add_argument("--parallel", type=int, metavar="K",

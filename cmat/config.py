@@ -1,8 +1,9 @@
 """Typed run configuration: dataclass defaults, overridden by a YAML file, then by `key=value`.
 
-Defaults are the reference MAT hyper-parameters for SMAC (shared/reference/README.md) except
-where a field's docstring says otherwise. OmegaConf merges and type-checks the layers; the result
-is converted back to these frozen dataclasses, so a typo or a wrong type fails before any tracing.
+Defaults are the reference MAT hyper-parameters for SMAC (the reference MAT implementation's
+SMAC train scripts) except where a field's docstring says otherwise. OmegaConf merges and
+type-checks the layers; the result is converted back to these frozen dataclasses, so a typo or a
+wrong type fails before any tracing.
 """
 
 from __future__ import annotations
@@ -241,7 +242,7 @@ class TrainConfig:
     """A named set of values the algorithm declares (its class's `presets`), applied over its
     reference defaults and under `--config` / `--set`: 'paper' is the paper's exact settings
     (`cmat train --preset paper`); CMAT's 'tuned' names its default, the learning-speed
-    study's configuration (README). None: the algorithm's defaults."""
+    study's configuration (docs/algorithms.md). None: the algorithm's defaults."""
     network: NetworkConfig = field(default_factory=NetworkConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
 

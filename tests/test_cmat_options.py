@@ -141,7 +141,7 @@ PAPER = {
     "network.log_std_init": 1.0,
 }
 """The paper's setting, written from the paper (the MAT SMAC hyper-parameters with 8 rollout
-threads) and shared/reference/README.md."""
+threads) and the reference MAT implementation's SMAC train scripts."""
 
 
 def value(config, dotted: str):

@@ -38,7 +38,7 @@ from cmat.experiments.lines import (
 )
 from cmat.experiments.plan import make_plan, schedule
 from cmat.experiments.runner import run_experiment
-from cmat.experiments.spec import load_spec
+from cmat.experiments.spec import load_spec, spec_names
 from cmat.experiments.statistics import aggregate, improvement_probability, iqm
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
@@ -46,7 +46,7 @@ from cmat.rundir import RunDir
 pytestmark = pytest.mark.quick_compiles
 
 REPO = Path(__file__).resolve().parents[1]
-SMOKE = REPO / "experiments" / "smoke.yaml"
+SMOKE = REPO / "cmat" / "experiments" / "specs" / "smoke.yaml"
 CMAT_RUN = "runs/matrix_fig1/default/cmat-s0-1"
 MAT_RUN = "runs/matrix_fig1/default/mat-s0-1"
 STAGE_RUN = "runs/matrix_fig1/finetune_action/cmat-s0-1"
@@ -648,13 +648,17 @@ def test_a_finished_runs_cores_go_to_the_next_run(
     assert executor.submit(["train"], tmp_path / "c.log").cores == "0,1"
 
 
-@pytest.mark.parametrize("name", ["paper_main.yaml", "paper_ablation.yaml", "smoke.yaml",
-                                  "cmat_speed_study.yaml", "cmat_speed_study_long.yaml",
-                                  "cmat_speed_study_3s5z_long.yaml", "sable_comparison.yaml"])
-def test_shipped_specs_plan(name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["experiment", str(REPO / "experiments" / name), "--out", str(tmp_path / "x"),
-                 "--dry-run"]) == 0
+@pytest.mark.parametrize("name", spec_names())
+def test_shipped_specs_plan_by_name(
+    name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["experiment", name, "--out", str(tmp_path / "x"), "--dry-run"]) == 0
     assert "runs in" in capsys.readouterr().out
+
+
+def test_unknown_spec_name_lists_the_shipped_ones(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["experiment", "dispatchh", "--dry-run"]) == 2
+    assert "smoke" in one_error_line(capsys.readouterr().err)
 
 
 def test_specs_name_cmats_paper_setting_or_its_default(tmp_path: Path) -> None:
@@ -662,13 +666,13 @@ def test_specs_name_cmats_paper_setting_or_its_default(tmp_path: Path) -> None:
     their clip and tau, so they keep their meaning whatever CMAT's default is."""
     from cmat.experiments.plan import make_plan
 
-    paper = make_plan(load_spec(REPO / "experiments" / "paper_main.yaml"), tmp_path / "a")
+    paper = make_plan(load_spec("paper_main"), tmp_path / "a")
     cmat_runs = [run.config for run in paper.runs if run.algo == "cmat" and run.config]
     assert cmat_runs and all(
         (c.preset, c.ppo.joint_clip, c.ppo.target_tau, c.num_envs) == ("paper", "joint", 0.1, 8)
         for c in cmat_runs
     )
-    study = make_plan(load_spec(REPO / "experiments" / "cmat_speed_study.yaml"), tmp_path / "b")
+    study = make_plan(load_spec("cmat_speed_study"), tmp_path / "b")
     lines = {run.variant.name: (run.config.ppo.joint_clip, run.config.ppo.target_tau)
              for run in study.runs if run.algo == "cmat" and run.config}
     assert lines == {
@@ -853,7 +857,7 @@ def test_ray_address_without_ray_is_one_error_line(
     for dry_run in ([], ["--dry-run"]):
         assert main(["experiment", str(path), "--out", str(tmp_path / "out"), "--ray", "auto",
                      *dry_run]) == 2
-        assert "--ray needs Ray: pip install 'cmat-marl[ray]'" in one_error_line(
+        assert "--ray needs Ray: pip install 'ray>=2.40,<3'" in one_error_line(
             capsys.readouterr().err)
     assert not (tmp_path / "out").exists()
 
@@ -878,12 +882,13 @@ def test_a_file_where_a_directory_is_needed_is_one_error_line_before_any_work(
         assert sorted(tmp_path.iterdir()) == before and file.read_text() == "mine"
 
 
-def test_the_readme_spec_example_plans(
+def test_the_documented_spec_example_plans(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """The README's spec-format block is a valid spec: it loads with the values its comments
-    state, and `--dry-run` plans every cell (the unavailable env skipped) without an error."""
-    readme = (REPO / "README.md").read_text()
+    """docs/experiments.md's spec-format block is a valid spec: it loads with the values its
+    comments state, and `--dry-run` plans every cell (the unavailable env skipped) without an
+    error."""
+    readme = (REPO / "docs" / "experiments.md").read_text()
     after = readme[readme.index("A spec is one YAML file"):]
     block = after[after.index("```yaml\n") + 8:after.index("\n```", after.index("```yaml"))]
     path = tmp_path / "readme_spec.yaml"

@@ -263,7 +263,8 @@ def test_mabrax_without_brax_names_the_package(monkeypatch: pytest.MonkeyPatch) 
     with pytest.raises(CmatError) as error:
         make_env("mabrax:ant_4x2")
     message = str(error.value)
-    assert "brax" in message and "pip install 'cmat-marl[mabrax]'" in message and "\n" not in message
+    assert "brax" in message and "pip install 'brax>=0.14.2,<0.15'" in message
+    assert "\n" not in message
 
 
 # Suites and the CLI.

@@ -1,5 +1,5 @@
 """`cmat.load_policy`: a trained run's policy in a user's own loop acts exactly as `cmat eval`,
-and the README's PettingZoo loop reaches the optimum of a game the run learned."""
+and the PettingZoo loop of docs/policies.md reaches the optimum of a game the run learned."""
 
 from __future__ import annotations
 
@@ -160,7 +160,7 @@ SIGNAL = "pettingzoo:test_host_envs:signal_game"
 
 
 def readme_loop_scores(out: Path, episodes: int) -> list[float]:
-    """The README's PettingZoo loop with the policy loaded from run `out`: one score per
+    """The PettingZoo loop of docs/policies.md with the policy loaded from run `out`: one score per
     episode, each checked to end within the game's length with actions the masks allow."""
     policy = cmat.load_policy(out)
     env = policy.make_env()
@@ -180,8 +180,9 @@ def readme_loop_scores(out: Path, episodes: int) -> list[float]:
     return scores
 
 
-def test_the_readme_pettingzoo_loop_plays_a_loaded_policy(tmp_path: Path) -> None:
-    """One update, then the README's loop: episodes of the host environment end, scored."""
+def test_the_documented_pettingzoo_loop_plays_a_loaded_policy(tmp_path: Path) -> None:
+    """One update, then the loop of docs/policies.md: episodes of the host environment end,
+    scored."""
     out = tmp_path / "signal"
     assert main(["train", "--env", SIGNAL, "--steps", "64", "--out", str(out), "--set",
                  "num_envs=16", "rollout_length=4", "ppo.epochs=1", "network.n_embd=16",
@@ -190,9 +191,10 @@ def test_the_readme_pettingzoo_loop_plays_a_loaded_policy(tmp_path: Path) -> Non
 
 
 @pytest.mark.slow
-def test_the_readme_pettingzoo_loop_reaches_the_optimum(tmp_path: Path) -> None:
+def test_the_documented_pettingzoo_loop_reaches_the_optimum(tmp_path: Path) -> None:
     """The signal game's settings measured in tests/test_host_envs.py (2,400 steps reach the
-    optimum return 5); the README's loop with the loaded policy scores 5 in every episode."""
+    optimum return 5); the loop of docs/policies.md with the loaded policy scores 5 in every
+    episode."""
     out = tmp_path / "signal"
     assert main(["train", "--env", SIGNAL, "--steps", "2400", "--out", str(out), "--set",
                  "num_envs=16", "rollout_length=25", "ppo.epochs=8", "network.n_embd=32",

@@ -469,8 +469,8 @@ def test_recurrent_sable_trains_and_resumes_through_the_cli(
 @pytest.mark.slow
 def test_sable_learns_level_based_foraging() -> None:
     """Jumanji LBF 2s-8x8-2p-2f-coop at the suite's and Sable's reference settings. Measured
-    (experiments/sable_comparison.yaml, 3 seeds, 32 greedy episodes): return 0.00 at 20k steps,
-    0.22-0.31 at 205k."""
+    (the shipped spec sable_comparison, 3 seeds, 32 greedy episodes): return 0.00 at 20k
+    steps, 0.22-0.31 at 205k."""
     config = load_config(overrides=[
         "algo=sable", "env=jumanji:lbf-2s-8x8-2p-2f-coop", "total_steps=204800",
         "log_interval=50", "eval_episodes=64",

@@ -518,12 +518,12 @@ def test_a_module_that_turns_on_64_bit_jax_is_one_error_line(
 
 
 @pytest.mark.parametrize(("agents", "choices"), [(3, 3), (2, 5)])
-def test_the_readme_example_env_honours_its_options(
+def test_the_documented_example_env_honours_its_options(
     agents: int, choices: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The README's smallest protocol env, copied from the README: its targets cover every
-    choice it is given, and its episodes last `max_episode_steps`."""
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    """docs/own-environment.md's smallest protocol env, copied from the page: its targets cover
+    every choice it is given, and its episodes last `max_episode_steps`."""
+    readme = (Path(__file__).resolve().parents[1] / "docs" / "own-environment.md").read_text()
     block = readme.split("The smallest one", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
     (tmp_path / "readme_target.py").write_text(textwrap.dedent(block))
     monkeypatch.syspath_prepend(str(tmp_path))

@@ -133,7 +133,7 @@ class Algorithm(Protocol):
     ynnpack_matmuls: ClassVar[bool]
     """On CPU, whether its programs run their matmuls through YNNPACK (XLA's other YNNPACK
     fusions stay off either way; `cmat.runners.devices.compiler_options`): True where that was
-    measured faster (README, Speed)."""
+    measured faster (docs/speed.md)."""
 
     @classmethod
     def build(

@@ -67,11 +67,11 @@ established in MAT, with the exception of setting the rollout threads to 8". The
 minibatch, entropy 0.01, grad norm 10, 100-step rollouts; MA-MuJoCo and GRF their own); this
 preset adds 8 rollout threads, MAT's shared values, m = n, the mixture consensus, the joint
 ratio clipped to [1 − ε, 1 + ε] (eq. cmat), entropy averaged over agents, and the target critic
-(τ not given in the paper: 0.1, README)."""
+(τ not given in the paper: 0.1, docs/algorithms.md)."""
 
 
 TUNED_SETTINGS: dict[str, Any] = {"ppo": {"joint_clip": "per_agent", "target_tau": 1.0}}
-"""CMAT's default since the learning-speed study (README, "CMAT's learning speed"), where it
+"""CMAT's default since the learning-speed study (docs/results/index.md), where it
 learned faster per env step than the paper's settings, MAT and MAPPO on SMAX 6h_vs_8z, 5m_vs_6m
 and 3s5z_vs_3s6z: the per-agent clip of the joint ratio (`ppo.joint_clip=per_agent`, which
 replaces clip(R, 1 − ε, 1 + ε) of eq. cmat by clip(R, (1 − ε)^k, (1 + ε)^k) for k active agents)

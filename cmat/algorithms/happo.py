@@ -116,7 +116,7 @@ class HAPPO(MAPPO):
     `hidden_sizes` [64, 64, 64] on every map, and per map `clip_param`, `gamma`, `ppo_epoch` and
     `actor_num_mini_batch` (the critic's epochs and minibatches equal the actor's on each).
     Maps HARL did not tune (2s3z, 3m, 8m, SMACv2) run `happo.yaml`. Not modelled: their
-    recurrent actors, 20 × 160-step rollouts and `use_proper_time_limits` (README)."""
+    recurrent actors, 20 × 160-step rollouts and `use_proper_time_limits` (docs/algorithms.md)."""
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         """Each actor initialised on its own (a vmapped orthogonal init hangs XLA:CPU)."""

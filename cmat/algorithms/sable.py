@@ -125,7 +125,7 @@ class Sable(MAT):
 
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
     ynnpack_matmuls: ClassVar[bool] = False
-    """Measured no faster with them (0.97 on SMAX 2s3z; README, Speed)."""
+    """Measured no faster with them (0.97 on SMAX 2s3z; docs/speed.md)."""
 
     reference_defaults: ClassVar[dict[str, Any]] = {
         "ppo": {

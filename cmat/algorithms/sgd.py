@@ -121,7 +121,7 @@ def minibatch_gradient(
     the loss terms are the minibatch's and the diagnostics averaged over active steps (the
     per-agent ones) weight the slices equally. With active masks the means' denominators
     differ between slices, so the loss itself runs its network in k recomputed slices instead
-    (`cmat.algorithms.base.chunked`), which costs a second forward pass (README, Speed). B must
+    (`cmat.algorithms.base.chunked`), which costs a second forward pass (docs/speed.md). B must
     be divisible by k (`TrainConfig.validate` checks it)."""
     grad_fn = jax.value_and_grad(loss, has_aux=True)
     chunks = ppo.minibatch_chunks

@@ -33,7 +33,7 @@ class TripleBERT(CMAT):
     """CMAT's sizes without its decoder and consensus (TripleBERTNetwork)."""
     output_axes: ClassVar[Any] = TripleBERTOutput._make((0, None, 0))
     ynnpack_matmuls: ClassVar[bool] = False
-    """Measured no faster with them (1.00 on SMAX 2s3z; README, Speed)."""
+    """Measured no faster with them (1.00 on SMAX 2s3z; docs/speed.md)."""
     finetune_labels = PPOAlgorithm.finetune_labels
 
     @classmethod

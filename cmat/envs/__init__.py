@@ -87,7 +87,7 @@ def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
         if importlib.util.find_spec("brax") is None:
             raise SuiteUnavailable(
                 f"{env_id} needs brax, which is not installed: "
-                f"pip install 'cmat-marl[mabrax]' (brax>=0.14.2,<0.15)"
+                f"pip install 'brax>=0.14.2,<0.15' (cmat's mabrax extra)"
             )
         from cmat.envs import mabrax_envs
 

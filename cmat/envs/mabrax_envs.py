@@ -1,6 +1,6 @@
 """JaxMARL's multi-agent Brax tasks (MABrax) adapted to the `MarlEnv` protocol: `mabrax:TASK`.
 
-Needs brax (`pip install 'cmat-marl[mabrax]'`), which JaxMARL 0.2.0 leaves optional and marks
+Needs brax (the `mabrax` extra), which JaxMARL 0.2.0 leaves optional and marks
 deprecated; JaxMARL's MABrax steps Brax's `positional` pipeline by default, as Mava does.
 
 Every agent drives its own joints (JaxMARL's `jaxmarl/environments/mabrax/mappings.py`) and sees

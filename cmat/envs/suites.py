@@ -2,7 +2,7 @@
 
 A suite's settings are the config layer between the dataclass defaults and the algorithm's
 reference defaults (`cmat.resolve.resolve_config`): the reference MAT hyper-parameters of that
-benchmark family (shared/reference/README.md, from MAT's train scripts) and the budget a user
+benchmark family (from the reference MAT implementation's train scripts) and the budget a user
 of the suite expects. `cmat train --env mamujoco:HalfCheetah-6x1` therefore trains with MAT's
 MA-MuJoCo settings without a `--set`; the run's config.yaml names the suite as the source of
 each value it set.
@@ -19,8 +19,8 @@ PAPER_BUDGET = 10_000_000
 MATRIX_BUDGET = 4_000
 """Env steps per seed of a matrix game at 16 envs × 25 steps and 5 epochs: twice the least
 budget measured to suffice. On matrix:fig1 every method ends at the optimum in 10 of 10 seeds at
-2,000 steps, CMAT in 2 of 10 at 1,000 (benchmarks/matrix_optimum.py --steps N, README
-"Defaults per suite")."""
+2,000 steps, CMAT in 2 of 10 at 1,000 (benchmarks/matrix_optimum.py --steps N,
+docs/suites.md)."""
 
 SMAC_SETTINGS: dict[str, Any] = {
     "rollout_length": 100, "num_envs": 32,

@@ -18,8 +18,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from tqdm import tqdm
+
 from cmat.errors import CmatError
 from cmat.experiments.plan import FINISHED, RESUME, Run, inspect, say
+from cmat.rundir import RunDir
 
 
 def discard(run: Run, out: Path) -> None:
@@ -75,8 +78,8 @@ def core_groups(slots: int) -> list[list[int]]:
 
     Runs that share cores each size XLA's thread pool to all of them and contend: on this
     project's 2-core machine two SMAX 2s3z CMAT runs (3 seeds each) at once trained at 1.07-1.17x
-    the summed steps/s when each was pinned to one core (README, "Experiments: one command for
-    a grid").
+    the summed steps/s when each was pinned to one core (docs/experiments.md, "Where the runs
+    execute").
     """
     cores = sorted(os.sched_getaffinity(0))
     if slots <= 1 or len(cores) < slots:
@@ -91,10 +94,12 @@ def core_groups(slots: int) -> list[list[int]]:
 
 
 def execute(jobs: list[Run], executor: Any, limit: int, out: Path) -> None:
-    """Run `jobs` (fine-tuning stages after their base) with at most `limit` at once."""
+    """Run `jobs` (fine-tuning stages after their base) with at most `limit` at once, showing
+    the grid's progress (`GridProgress`) while they run."""
     pending = list(jobs)
     running: dict[Any, tuple[Run, float]] = {}
     total, finished = len(jobs), 0
+    progress = GridProgress(jobs)
     try:
         while pending or running:
             for run in list(pending):
@@ -118,16 +123,104 @@ def execute(jobs: list[Run], executor: Any, limit: int, out: Path) -> None:
                 say(f"[start] {run.name} ({run.status}; log {run.log.relative_to(out)})")
             if not running:
                 continue
-            handle, code = executor.wait(list(running))
+            progress.show([run for run, _ in running.values()], len(pending))
+            ended = executor.wait(list(running), timeout=PROGRESS_SECONDS)
+            if ended is None:
+                continue
+            handle, code = ended
             run, started = running.pop(handle)
             finished += 1
             run.outcome = judge(run, code)
             seconds = time.monotonic() - started
             result = "done" if run.outcome == "ok" else f"FAILED: {run.outcome}"
-            say(f"[{finished}/{total}] {run.name}: {result} ({seconds:.0f} s)")
+            progress.show([run for run, _ in running.values()], len(pending))
+            say(f"[{finished}/{total}] {run.name}: {result} ({seconds:.0f} s); "
+                f"{progress.summary()}")
     except BaseException:
         executor.stop(list(running))
         raise
+    finally:
+        progress.close()
+
+
+PROGRESS_SECONDS = 2.0
+"""How often the grid's progress is read from the running runs' checkpoints."""
+
+
+class GridProgress:
+    """The grid's progress over the env steps of every seed of `jobs`, read from the runs'
+    checkpoint headers: a bar on a terminal (runs done, running, queued; steps/s; ETA) and a
+    summary for each run's `done` line. Steps/s counts from the first steps any run of this
+    execution wrote, so compilation before them is not in it; later runs' compilation is, as
+    it is part of what the grid still has to do."""
+
+    def __init__(self, jobs: list[Run]) -> None:
+        self.jobs = jobs
+        self.start = {run.name: self.steps(run) for run in jobs}
+        self.total = sum(self.budget(run) for run in jobs)
+        self.done_before = sum(self.start.values())
+        self.first: tuple[int, float] | None = None
+        self.bar = tqdm(total=self.total, initial=self.done_before, unit="step",
+                        unit_scale=True, desc="grid", disable=None, dynamic_ncols=True,
+                        smoothing=0, bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} {postfix}")
+
+    @staticmethod
+    def budget(run: Run) -> int:
+        return 0 if run.config is None else run.config.budget_steps * run.config.seeds
+
+    @staticmethod
+    def steps(run: Run) -> int:
+        """Env steps of every seed in `run`'s latest checkpoint (0 before its first)."""
+        if run.config is None or not (run.path / "checkpoints").is_dir():
+            return 0
+        try:
+            return RunDir(run.path).checkpoint_steps()[0] * run.config.seeds
+        except (CmatError, OSError, ValueError):
+            return 0
+
+    def done_steps(self) -> int:
+        return sum(self.budget(run) if run.outcome == "ok" else self.steps(run)
+                   for run in self.jobs)
+
+    def rate(self, done: int) -> float | None:
+        """Env steps per second since the first steps of this execution."""
+        now = time.monotonic()
+        if self.first is None:
+            if done > self.done_before:
+                self.first = (done, now)
+            return None
+        steps, since = self.first
+        return (done - steps) / (now - since) if done > steps and now > since else None
+
+    def summary(self, running: int | None = None, queued: int | None = None) -> str:
+        done = self.done_steps()
+        rate = self.rate(done)
+        finished = sum(run.outcome is not None for run in self.jobs)
+        parts = [f"{finished}/{len(self.jobs)} runs ended"]
+        if running is not None:
+            parts.append(f"{running} running, {queued} queued")
+        parts.append(f"{done / max(self.total, 1):.0%} of {self.total:,} env steps")
+        if rate:
+            eta = (self.total - done) / rate
+            parts.append(f"{rate:,.0f} steps/s, ETA {format_seconds(eta)}")
+        self.bar.n = done
+        return ", ".join(parts)
+
+    def show(self, running: list[Run], queued: int) -> None:
+        self.bar.set_postfix_str(self.summary(len(running), queued), refresh=False)
+        self.bar.refresh()
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def format_seconds(seconds: float) -> str:
+    """`42 s`, `17 min`, `3.2 h`."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def judge(run: Run, code: int | str) -> str:
@@ -200,8 +293,11 @@ class LocalExecutor:
         return process
 
     def wait(
-        self, handles: list[subprocess.Popen[bytes]]
-    ) -> tuple[subprocess.Popen[bytes], int]:
+        self, handles: list[subprocess.Popen[bytes]], timeout: float | None = None
+    ) -> tuple[subprocess.Popen[bytes], int] | None:
+        """The first of `handles` to end and its exit code; None if none ends in `timeout`
+        seconds."""
+        deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             for process in handles:
                 code = process.poll()
@@ -209,6 +305,8 @@ class LocalExecutor:
                     if process in self.cores:
                         self.free_cores.append(self.cores.pop(process))
                     return process, code
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
             time.sleep(0.2)
 
     def stop(self, handles: list[subprocess.Popen[bytes]]) -> None:
@@ -229,7 +327,7 @@ def import_ray() -> Any:
     try:
         import ray
     except ImportError:
-        raise CmatError("--ray needs Ray: pip install 'cmat-marl[ray]'") from None
+        raise CmatError("--ray needs Ray: pip install 'ray>=2.40,<3' (cmat's ray extra)") from None
     return ray
 
 
@@ -249,8 +347,12 @@ class RayExecutor:
     def submit(self, argv: list[str], log: Path) -> Any:
         return self.task.remote(argv, str(log), self.cache)
 
-    def wait(self, handles: list[Any]) -> tuple[Any, int | str]:
-        ready, _ = self.ray.wait(handles, num_returns=1)
+    def wait(
+        self, handles: list[Any], timeout: float | None = None
+    ) -> tuple[Any, int | str] | None:
+        ready, _ = self.ray.wait(handles, num_returns=1, timeout=timeout)
+        if not ready:
+            return None
         try:
             return ready[0], int(self.ray.get(ready[0]))
         except Exception as error:  # the task or its node died

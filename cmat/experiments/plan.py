@@ -19,8 +19,11 @@ an unknown id), are reported and skipped.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from tqdm import tqdm
 
 from cmat.config import TrainConfig, resolve_iterations
 from cmat.envs import probe_env
@@ -282,4 +285,6 @@ def print_plan(plan: Plan) -> None:
 
 
 def say(message: str) -> None:
-    print(message, flush=True)
+    """One line of the experiment's output, above its progress bar where one is shown."""
+    tqdm.write(message)
+    sys.stdout.flush()

@@ -1,7 +1,7 @@
 """An experiment spec: a grid of environments × algorithms × variants × seeds, read from YAML.
 
 The format, every key with its default and what a variant or a fine-tuning stage (`from`) means,
-is the README's "Experiments: one command for a grid" (tests/test_experiment.py loads and plans
+is docs/experiments.md's spec block (tests/test_experiment.py loads and plans
 its example). `load_spec` checks a file against it: an unknown or duplicate key, a wrong type or
 value, a `from` that names no variant or closes a cycle, or an env no variant runs on is a
 one-line `CmatError` naming the file and the key.
@@ -97,13 +97,35 @@ class ExperimentSpec:
         return [(s, min(self.seeds_per_run, self.seed + self.seeds - s)) for s in starts]
 
 
-def load_spec(path: Path) -> ExperimentSpec:
-    """Read and check a spec; every problem is a one-line CmatError naming the file and key."""
+SPECS = Path(__file__).parent / "specs"
+"""The experiment specs shipped with cmat: the grids behind the results pages, and smoke."""
+
+
+def spec_names() -> list[str]:
+    """The names `load_spec` accepts for the specs shipped with cmat."""
+    return sorted(path.stem for path in SPECS.glob("*.yaml"))
+
+
+def find_spec(path: Path | str) -> Path:
+    """`path` itself where it exists or names a file (has a suffix or a folder), else the
+    shipped spec of that name where there is one."""
     path = Path(path)
+    shipped = SPECS / f"{path.name}.yaml"
+    if not path.exists() and path.suffix == "" and path.parent == Path(".") and shipped.is_file():
+        return shipped
+    return path
+
+
+def load_spec(path: Path | str) -> ExperimentSpec:
+    """Read and check a spec: a YAML file, or the name of one shipped with cmat
+    (`spec_names`: `dispatch` is cmat/experiments/specs/dispatch.yaml). Every problem is a
+    one-line CmatError naming the file and key."""
+    path = find_spec(path)
     try:
         raw = load_yaml(read_text(path, "experiment spec"))
     except FileNotFoundError:
-        raise CmatError(f"experiment spec not found: {path}") from None
+        raise CmatError(f"experiment spec not found: {path} (the specs shipped with cmat: "
+                        f"{', '.join(spec_names())})") from None
     except yaml.YAMLError as error:
         first = str(error).strip().splitlines()[0]
         raise CmatError(f"experiment spec {path} is not valid YAML: {first}") from None

@@ -40,7 +40,7 @@ def extend(cache: KeyValues | None, new: KeyValues, position: int, length: int) 
     (`filled`).
 
     One buffer per sequence, written in place, rather than a concatenation per position: the
-    unrolled CMAT decoder's gradient compiles and runs faster at large m (README, Speed)."""
+    unrolled CMAT decoder's gradient compiles and runs faster at large m (docs/speed.md)."""
     if cache is None:
         shape = (*new[0].shape[:-2], length, new[0].shape[-1])
         cache = (jnp.zeros(shape, new[0].dtype), jnp.zeros(shape, new[1].dtype))
@@ -61,7 +61,7 @@ class MultiHeadAttention(nn.Module):
     Heads are kept on the axis before positions, so both products are batched matmuls whose
     batch axes lead and whose contraction axes are minor: with one head (the reference
     setting) no transpose is left. On CPU this halved the time of SMAX 3m's per-team
-    attention (64 envs x 3 agents) against a positions-then-heads layout (README, Speed).
+    attention (64 envs x 3 agents) against a positions-then-heads layout (docs/speed.md).
     """
 
     n_embd: int

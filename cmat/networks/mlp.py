@@ -35,7 +35,7 @@ class MLPActor(nn.Module):
     init_gain: float
     log_std_init: float = 1.0
     """Initial log-std of continuous actions (std = sigmoid(log_std) · 0.5, as every cmat
-    policy; the reference MAPPO's DiagGaussian uses std = exp(log_std), README)."""
+    policy; the reference MAPPO's DiagGaussian uses std = exp(log_std), docs/algorithms.md)."""
     layers: int = 2
 
     @nn.compact

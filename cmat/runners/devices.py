@@ -75,7 +75,8 @@ def compiler_options(ynnpack_matmuls: bool = False) -> dict[str, str]:
     algorithm's `Algorithm.ynnpack_matmuls`), else through XLA's own kernels. Nothing
     where JAX computes on another platform, where the installed XLA does not know the option or
     value, or where the user's `XLA_FLAGS` set YNNPACK's fusions themselves (their choice wins).
-    Training steps/s against XLA's defaults: README, Speed ("YNNPACK fusions")."""
+    Training steps/s against XLA's defaults: docs/speed.md; the measurements in
+    benchmarks/results/speed_notes_2026-12-05.md ("YNNPACK fusions")."""
     return dict(_cpu_compiler_options(ynnpack_matmuls))
 
 

@@ -82,11 +82,13 @@ def train_locked(
         with (
             remembered_interrupts() as interrupted,
             scalar_writers(config, run_dir, purge_step=done + 1 if resume else None) as writer,
-            tqdm(total=config.budget_steps, initial=done, unit="step", unit_scale=True,
-                 desc=config.env, dynamic_ncols=True) as bar,
+            Progress(total=config.budget_steps, initial=done, unit="step", unit_scale=True,
+                     desc=config.env, dynamic_ncols=True, smoothing=0,
+                     postfix="compiling") as bar,
         ):
             for updates in chunks:
                 state = run_chunk(trainer, state, run_dir, writer, bar, updates, watch)
+                bar.compiled()
                 session.record(trainer.env_steps(state))
                 if interrupted():
                     raise KeyboardInterrupt
@@ -94,6 +96,28 @@ def train_locked(
         run_dir.truncate_metrics(run_dir.load_checkpoint()[1])
         raise
     plot_runs([run_dir.path], run_dir.curve_path)
+
+
+class Progress(tqdm):  # type: ignore[misc]
+    """The training bar: its rate and ETA count the steps after the session's first chunk
+    (`compiled`) only, so the compilation is not in them; until the second chunk ends the ETA
+    reads `?`."""
+
+    mark: tuple[float, float] | None = None
+
+    def compiled(self) -> None:
+        """Mark the end of the first chunk (later calls change nothing)."""
+        if self.mark is None:
+            self.mark = (self.n, self._time())
+
+    @property
+    def format_dict(self) -> dict[str, Any]:
+        values: dict[str, Any] = super().format_dict
+        steps, since = self.mark or (self.n, self._time())
+        seconds = self._time() - since
+        values["initial"] = steps
+        values["rate"] = (self.n - steps) / seconds if self.n > steps and seconds else None
+        return values
 
 
 def resume_is_complete(config: TrainConfig, run_dir: RunDir, done: int) -> bool:
@@ -142,8 +166,10 @@ class WandbWriter:
         try:
             import wandb
         except ImportError:
-            raise CmatError("logger=wandb needs the wandb package: pip install 'cmat-marl[wandb]'") \
-                from None
+            raise CmatError(
+                "logger=wandb needs the wandb package: pip install 'wandb>=0.19,<1' "
+                "(cmat's wandb extra)"
+            ) from None
         online = os.environ.get("WANDB_MODE") == "online" or (
             "WANDB_MODE" not in os.environ and bool(os.environ.get("WANDB_API_KEY")))
         path = run_dir.path.resolve()
@@ -223,7 +249,7 @@ class EpisodeEndWatch:
 
 
 def run_chunk(
-    trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: ScalarWriters, bar: tqdm,
+    trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: ScalarWriters, bar: Progress,
     updates: int, watch: EpisodeEndWatch,
 ) -> TrainerState:
     """`updates` updates, their evaluation, logs and checkpoint; `watch` sees each chunk's

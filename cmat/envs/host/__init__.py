@@ -26,8 +26,8 @@ __all__ = [
 
 DEFAULT_WORKERS = {"pettingzoo": 0, "mamujoco": 0, "grf": 0}
 """Worker processes per suite when the config leaves `host_workers` unset (0: in-process),
-picked by benchmarks/host_throughput.py on this project's 2-core machines (README, "Host
-environments"): in-process was as fast or faster for HalfCheetah 6x1 and GRF 3 vs 1, because
+picked by benchmarks/host_throughput.py on this project's 2-core machines (docs/speed.md,
+"Host environments"): in-process was as fast or faster for HalfCheetah 6x1 and GRF 3 vs 1, because
 the workers compete with XLA for the same two cores. With spare cores, GRF (7 ms a step) gains
 from `host_workers`."""
 

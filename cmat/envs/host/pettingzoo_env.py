@@ -1,6 +1,6 @@
 """`pettingzoo:package.module:factory`: any PettingZoo `ParallelEnv` behind the host protocol.
 
-How a ParallelEnv maps onto the protocol (README, "Host environments"):
+How a ParallelEnv maps onto the protocol (docs/own-environment.md):
 - Agents are `possible_agents` in their order. The live set is `env.agents`, read after every
   reset and step: agents may leave, join after `reset`, or come back. An agent outside it, or
   in it without an observation this step, is inactive exactly as a dead one: zero observation,
