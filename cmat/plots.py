@@ -17,6 +17,56 @@ if TYPE_CHECKING:
 
 Curve = tuple[np.ndarray, np.ndarray, np.ndarray]
 
+PRINT_DPI = 200
+"""Resolution of every PNG cmat writes (a column of a printed paper wants at least 150)."""
+COLUMN_INCHES = 3.4
+"""Width of one column of a two-column paper; a figure of several panels takes the text width,
+`TEXT_INCHES`."""
+TEXT_INCHES = 7.0
+PRINT_STYLE: dict[Any, Any] = {
+    "font.size": 7, "axes.titlesize": 8, "axes.labelsize": 7, "legend.fontsize": 6,
+    "xtick.labelsize": 6, "ytick.labelsize": 6, "lines.linewidth": 1.2,
+}
+"""Font sizes in points at the figure's printed size (matplotlib rcParams)."""
+METRIC_RANGES = {"win_rate": (0.0, 1.0)}
+"""Metrics with a bounded range: their ±std bands are clipped to it."""
+
+
+def print_style() -> Any:
+    """A context in which new figures get `PRINT_STYLE`'s font sizes."""
+    from matplotlib import rc_context
+
+    return rc_context(PRINT_STYLE)
+
+
+def band(axes: Any, steps: np.ndarray, mean: np.ndarray, std: np.ndarray, metric: str,
+         **options: Any) -> None:
+    """The ±1 std band around `mean`, clipped to the metric's range (`METRIC_RANGES`)."""
+    low, high = METRIC_RANGES.get(metric, (-np.inf, np.inf))
+    axes.fill_between(steps, np.clip(mean - std, low, high), np.clip(mean + std, low, high),
+                      **options)
+
+
+def steps_axis(axes: Any) -> None:
+    """Label the x axis as env steps per seed, in engineering notation (200k, 1M)."""
+    from matplotlib.ticker import EngFormatter
+
+    axes.xaxis.set_major_formatter(EngFormatter(sep=""))
+    axes.set_xlabel("env steps per seed")
+
+
+def save_figure(figure: Figure, path: Path, pdf: bool = False) -> list[Path]:
+    """Write `figure` to `path` (PNG at `PRINT_DPI`, or the format its suffix names), and with
+    `pdf` a vector PDF beside it; returns the paths written."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=PRINT_DPI)
+    written = [Path(path)]
+    if pdf and Path(path).suffix != ".pdf":
+        figure.savefig(Path(path).with_suffix(".pdf"))
+        written.append(Path(path).with_suffix(".pdf"))
+    return written
+
+
 FEW_POINTS = 12
 """Curves of at most this many points get a marker on each (a single point draws no line)."""
 
@@ -120,17 +170,31 @@ def plot_runs(run_dirs: list[Path], out: Path) -> None:
         if win_rate is not None:
             panels["win_rate"].append((label, win_rate))
     shown = {name: curves for name, curves in panels.items() if curves}
-    figure = new_figure(figsize=(6 * len(shown), 4.2), layout="constrained")
+    with print_style():
+        figure = new_figure(figsize=(COLUMN_INCHES if len(shown) == 1 else TEXT_INCHES,
+                                     2.6 + 0.15 * len(handles_of(shown))),
+                            layout="constrained")
+        draw_curves(figure, shown, envs, algos)
+        save_figure(figure, out)
+
+
+def handles_of(shown: dict[str, list[tuple[str, Curve]]]) -> list[str]:
+    return list(dict.fromkeys(label for curves in shown.values() for label, _ in curves))
+
+
+def draw_curves(figure: Figure, shown: dict[str, list[tuple[str, Curve]]], envs: set[str],
+                algos: set[str]) -> None:
+    """`plot_runs`'s panels: one per metric in `shown`, a line per run."""
     all_axes = figure.subplots(1, len(shown), squeeze=False)[0]
     colors = {label: f"C{index % 10}" for index, (label, _) in enumerate(shown["episode_return"])}
     handles: dict[str, Any] = {}
     for axes, (name, curves) in zip(all_axes, shown.items()):
         for label, (steps, mean, std) in curves:
             color = colors[label]
-            (line,) = axes.plot(steps, mean, color=color, marker=marker(steps), markersize=3)
-            axes.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2)
+            (line,) = axes.plot(steps, mean, color=color, marker=marker(steps), markersize=2)
+            band(axes, steps, mean, std, name, color=color, alpha=0.2)
             handles.setdefault(label, line)
-        axes.set_xlabel("env steps per seed")
+        steps_axis(axes)
         axes.set_ylabel(f"eval {name.replace('_', ' ')}")
         axes.grid(alpha=0.3)
     title = " · ".join(sorted(envs if len(envs) == 1 else set()) + sorted(
@@ -138,8 +202,6 @@ def plot_runs(run_dirs: list[Path], out: Path) -> None:
     if title:
         figure.suptitle(title, fontsize="medium")
     legend_below(figure, list(handles.values()), list(handles))
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=100)
 
 
 DIAGNOSTIC_PANELS = (
@@ -172,7 +234,15 @@ def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
         run = RunDir.open(path)
         runs.append((f"{run.config().algo} ({name})", run.read_metrics()))
     colours = [f"C{index % 10}" for index in range(len(runs))]
-    figure = new_figure(figsize=(18, 9), layout="constrained")
+    with print_style():
+        figure = new_figure(figsize=(TEXT_INCHES, 4.6), layout="constrained")
+        draw_diagnostics(figure, runs, colours, run_dirs)
+        save_figure(figure, out)
+
+
+def draw_diagnostics(figure: Figure, runs: list[tuple[str, list[dict[str, str]]]],
+                     colours: list[str], run_dirs: list[Path]) -> None:
+    """`plot_diagnostics`'s six panels."""
     all_axes = figure.subplots(2, 3).reshape(-1)
     drawn = 0
     for axes, (title, wanted) in zip(all_axes, DIAGNOSTIC_PANELS):
@@ -189,13 +259,13 @@ def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
                 style = LINE_STYLES[names.index(column)] if styled else "-"
                 tag = column if styled or len(runs) == 1 else None
                 axes.plot(steps, mean, linestyle=style, color=colour if len(runs) > 1 else None,
-                          linewidth=1.5 if styled else 0.8, label=tag, marker=marker(steps),
-                          markersize=3)
+                          linewidth=1.2 if styled else 0.6, label=tag, marker=marker(steps),
+                          markersize=2)
                 axes.fill_between(steps, mean - std, mean + std, color=axes.lines[-1].get_color(),
                                   alpha=0.15 if styled else 0.05)
                 drawn += 1
         axes.set_title(title)
-        axes.set_xlabel("env steps per seed")
+        steps_axis(axes)
         axes.grid(alpha=0.3)
         if axes.lines and (styled or len(runs) == 1):
             handles, labels = axes.get_legend_handles_labels()
@@ -209,5 +279,3 @@ def plot_diagnostics(run_dirs: list[Path], out: Path) -> None:
     if len(runs) > 1:
         handles = [figure.axes[0].plot([], [], color=colour)[0] for colour in colours]
         legend_below(figure, handles, [label for label, _ in runs])
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=100)

@@ -22,7 +22,7 @@ LAYERS = {
     "cmat.resolve": 4, "cmat.rundir": 4, "cmat.plots": 4,
     "cmat.runners": 5,
     "cmat.experiments": 6, "cmat.policy": 6,
-    "cmat.render": 7,
+    "cmat.render": 7, "cmat.api": 7,
     "cmat.cli": 8, "cmat.__main__": 8, "cmat": 8,
 }
 """Layer of each package or top-level module: a module imports only from its own package or

@@ -104,7 +104,8 @@ def test_experiment_reports_a_grid(tmp_path: Path) -> None:
     shutil.copytree(exported, out, ignore=shutil.ignore_patterns("*.png", "*.md"))
     result = cmat.experiment(out / "spec.yaml", out=out, report_only=True)
     assert result.report.is_file() and (out / "figure_main.png").is_file()
-    assert result.results["name"] == "dispatch"
+    assert result.results["name"] == "dispatch" and "claims" not in result.results
+    assert "The paper's claims" not in result.report.read_text()  # the spec asks for none
     runs = result.runs
     assert "dispatch_grid-100-mid/default/cmat-s0-2" in runs
     assert runs["dispatch_grid-100-mid/default/cmat-s0-2"].config.algo == "cmat"

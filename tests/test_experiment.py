@@ -156,9 +156,14 @@ def test_killed_grid_resumes_without_redoing_finished_runs(grid: tuple[Path, byt
 
 def test_grid_writes_figures_table_and_statistics(grid: tuple[Path, bytes, str]) -> None:
     out, _, stdout = grid
-    for name in ("figure_main.png", "figure_ablation.png"):
-        assert (out / name).read_bytes().startswith(b"\x89PNG")
-        assert f"wrote {out / name}" in stdout
+    for name in ("figure_main", "figure_ablation"):
+        png, pdf = out / f"{name}.png", out / f"{name}.pdf"
+        assert png.read_bytes().startswith(b"\x89PNG") and pdf.read_bytes().startswith(b"%PDF")
+        assert f"wrote {png}" in stdout and f"wrote {pdf}" in stdout
+        from PIL import Image
+
+        with Image.open(png) as image:  # the text width of a two-column paper, for print
+            assert image.size[0] == 7 * 200 and round(image.info["dpi"][0]) == 200
     table = (out / "results.md").read_text()
     assert "| task | metric | steps | CMAT | MAT | CMAT-finetune (action) |" in table
     assert "| Fig. 1 matrix game | episode return | 1,000 | " in table
@@ -725,7 +730,7 @@ def test_a_variant_restricted_to_some_envs_plans_and_aggregates_only_there(
     assert beside_a_benchmark["lines"]["MAT"]["mean"] == pytest.approx(0.25)
 
 
-def test_a_figure_draws_the_tasks_its_variants_are_compared_on(tmp_path: Path) -> None:
+def test_the_ablation_draws_the_tasks_its_variants_are_compared_on(tmp_path: Path) -> None:
     path = tmp_path / "panels.yaml"
     envs = ["matrix:fig1", "matrix:penalty", "matrix:climbing"]
     path.write_text(yaml.safe_dump({
@@ -747,6 +752,11 @@ def test_a_figure_draws_the_tasks_its_variants_are_compared_on(tmp_path: Path) -
         "steps": 100, "envs": envs, "algos": ["cmat"],
         "variants": {"a": {"envs": ["matrix:fig1"]}, "b": {"envs": ["matrix:penalty"]},
                      "c": {"envs": ["matrix:climbing"]}},
+    }))
+    assert [env.id for env in panel_envs(load_spec(path), "main")] == envs
+    path.write_text(yaml.safe_dump({
+        "steps": 100, "envs": envs, "algos": ["cmat"],
+        "variants": {"default": {}, "long": {"envs": ["matrix:fig1"], "steps": 200}},
     }))
     assert [env.id for env in panel_envs(load_spec(path), "main")] == envs
 
@@ -902,3 +912,33 @@ def test_the_documented_spec_example_plans(
     planned = capsys.readouterr().out
     assert "new     smax_2s3z/finetune_action/cmat-s0-2" in planned, planned
     assert "new     smax_3m/m_half" not in planned and "unavailable" in planned, planned
+
+
+def test_claims_are_judged_only_where_the_spec_asks(tmp_path: Path) -> None:
+    path = tmp_path / "claims.yaml"
+    base = {"steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"]}
+    path.write_text(yaml.safe_dump(base))
+    assert load_spec(path).claims is False
+    path.write_text(yaml.safe_dump({**base, "claims": True}))
+    assert load_spec(path).claims is True
+    path.write_text(yaml.safe_dump({**base, "claims": "yes"}))
+    with pytest.raises(CmatError, match="claims must be true or false"):
+        load_spec(path)
+    assert {name for name in spec_names() if load_spec(name).claims} == {
+        "paper_main", "paper_ablation", "smax_benchmark", "sable_comparison", "mini_repro",
+        "smoke"}
+
+
+def test_bands_stay_in_the_metric_range() -> None:
+    from matplotlib.figure import Figure
+
+    from cmat.plots import band
+
+    axes = Figure().subplots()
+    steps, mean, std = np.arange(3.0), np.array([0.05, 0.5, 0.95]), np.full(3, 0.2)
+    band(axes, steps, mean, std, "win_rate")
+    low, high = axes.collections[0].get_paths()[0].vertices[:, 1].min(), \
+        axes.collections[0].get_paths()[0].vertices[:, 1].max()
+    assert (low, high) == (0.0, 1.0)
+    band(axes, steps, mean, std, "episode_return")
+    assert axes.collections[1].get_paths()[0].vertices[:, 1].min() == pytest.approx(-0.15)

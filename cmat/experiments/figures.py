@@ -22,23 +22,48 @@ from cmat.experiments.lines import (
 )
 from cmat.experiments.plan import Plan
 from cmat.experiments.spec import EnvEntry, ExperimentSpec
-from cmat.plots import legend_below, marker, new_figure
+from cmat.plots import (
+    TEXT_INCHES,
+    band,
+    legend_below,
+    marker,
+    new_figure,
+    print_style,
+    save_figure,
+    steps_axis,
+)
 
 
 def draw(
     plan: Plan, lines: dict[str, list[Line]], metrics: dict[str, str],
     references: list[dict[str, Any]], suite_aggregates: list[dict[str, Any]],
     figure_kind: str, path: Path,
-) -> None:
+) -> list[Path]:
     """A panel per task; `figure_kind` selects the variants drawn (main or ablation). Published
     task figures are dashed grey lines; published suite means on the task's scale
     (lines.drawn_suite_aggregates) are dotted lines in the colour of the same algorithm's line
-    where there is one. Where two or more of the figure's variants exist, only the tasks that
-    two of them cover get a panel (an ablation that runs on two maps draws two panels)."""
+    where there is one. The main figure has a panel per task; in the ablation figure, where two
+    or more of its variants exist, only the tasks that two of them cover get a panel (an
+    ablation that runs on two maps draws two panels).
+
+    Sized for print: the text width of a two-column paper (`TEXT_INCHES`), PNG at
+    `PRINT_DPI` and a vector PDF beside it; returns the paths written."""
     envs = panel_envs(plan.spec, figure_kind)
     columns = min(3, len(envs))
     rows = math.ceil(len(envs) / columns)
-    figure = new_figure(figsize=(5.2 * columns, 3.9 * rows + 0.9), layout="constrained")
+    with print_style():
+        figure = new_figure(figsize=(TEXT_INCHES, 2.2 * rows + 1.0), layout="constrained")
+        draw_panels(figure, plan, envs, columns, rows, lines, metrics, references,
+                    suite_aggregates, figure_kind)
+        return save_figure(figure, path, pdf=True)
+
+
+def draw_panels(
+    figure: Any, plan: Plan, envs: list[EnvEntry], columns: int, rows: int,
+    lines: dict[str, list[Line]], metrics: dict[str, str], references: list[dict[str, Any]],
+    suite_aggregates: list[dict[str, Any]], figure_kind: str,
+) -> None:
+    """`draw`'s panels, legends and title on `figure`."""
     axes_grid = figure.subplots(rows, columns, squeeze=False)
     palette = [f"C{i}" for i in range(10)]
     colors: dict[str, str] = {}
@@ -72,8 +97,8 @@ def draw(
                     mean[-1], color=color, lw=1.2, ls="--", label=label))
                 continue
             (handle,) = axes.plot(steps, mean, color=color, label=label,
-                                  marker=marker(steps), markersize=3)
-            axes.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2)
+                                  marker=marker(steps), markersize=2)
+            band(axes, steps, mean, std, metric, color=color, alpha=0.2)
             handles.setdefault(key, handle)
         published = []
         if figure_kind == "main":
@@ -85,7 +110,7 @@ def draw(
                 color = colors.get(row["algorithm"], "0.35")
                 published.append(axes.axhline(row["value"], color=color, lw=1, ls=":",
                                               label=wrap(suite_aggregate_label(row), 60)))
-        axes.set_xlabel("env steps per seed")
+        steps_axis(axes)
         axes.set_ylabel(f"eval {METRIC_NAMES[metric]}")
         axes.grid(alpha=0.3)
         if figure_kind == "ablation":
@@ -99,16 +124,15 @@ def draw(
     title = "training curves" if figure_kind == "main" else "ablation (CMAT)"
     figure.suptitle(f"{plan.spec.name}: {title}, evaluation, mean ± std over seeds",
                     fontsize="small")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=90)
 
 
 def panel_envs(spec: ExperimentSpec, figure_kind: str) -> list[EnvEntry]:
-    """The spec's environments that `figure_kind` compares variants on: covered by two of its
-    variants (for the ablation figure, variants with CMAT), or all of them where the figure has
-    fewer than two variants or no task has two."""
-    variants = [v for v in spec.variants if figure_kind in v.figures
-                and (figure_kind == "main" or "cmat" in v.algos)]
+    """The spec's environments that `figure_kind` draws: all of them for the main figure (a
+    longer variant on one task leaves the others in it); for the ablation figure, those covered
+    by two of its variants with CMAT, or all of them where no task has two."""
+    if figure_kind == "main":
+        return list(spec.envs)
+    variants = [v for v in spec.variants if figure_kind in v.figures and "cmat" in v.algos]
     compared = [env for env in spec.envs if sum(v.covers(env.id) for v in variants) >= 2]
     return compared or list(spec.envs)
 

@@ -3,18 +3,21 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 from cmat.experiments.baselines import BASELINE_VARIANT
 from cmat.experiments.claims import EVIDENCE_NEEDED, NO_DATA, SEPARATION, coverage
 from cmat.experiments.lines import METRIC_NAMES
 from cmat.experiments.plan import Plan
+from cmat.experiments.spec import SPECS
 
 
 def markdown(plan: Plan, summary: dict[str, Any]) -> str:
     out = [f"# Experiment `{plan.spec.name}`", "",
-           (f"Spec: `spec.yaml` (from `{plan.spec.path}`). Seeds {seed_range(plan)} of every "
-            f"line. {settings_text(plan)} Score: {score_text(plan)}, mean ± std (population "
+           (f"Spec: `spec.yaml` (from {spec_origin(plan.spec.path)}). Seeds "
+            f"{seed_range(plan)} of every line. {settings_text(plan)} Score: "
+            f"{score_text(plan)}, mean ± std (population "
             f"std, ddof = 0) over seeds (n = {plan.spec.seeds} unless marked). Metric: win "
             f"rate where the environment defines one, else episode return."
             f"{old_protocol_text(summary)}"), ""]
@@ -295,3 +298,10 @@ def tally(comparison: dict[str, Any]) -> str:
     counts = [sum(t["outcome"] in o for t in comparison["per_task"])
               for o in (("x",), ("y",), ("tie", "same"))]
     return " / ".join(str(n) for n in counts)
+
+
+def spec_origin(path: Path) -> str:
+    """Where a report's spec came from: the name of a spec shipped with cmat, else its path."""
+    if path.resolve().parent == SPECS.resolve():
+        return f"cmat's spec `{path.stem}`"
+    return f"`{path}`"

@@ -1,14 +1,17 @@
 """What `cmat experiment` writes from the complete runs of a grid.
 
-- `figure_main.png` (paper Fig. 3): a panel per task, a line per algorithm / variant of figure
-  `main`: greedy evaluation metric against env steps, mean ± std over seeds shaded; published
-  reference figures for the task as dashed horizontal lines labelled "published".
-- `figure_ablation.png` (paper Fig. 4), when the spec has variants of figure `ablation`.
+- `figure_main.png` and `figure_main.pdf` (paper Fig. 3): a panel per task, a line per
+  algorithm / variant of figure `main`: greedy evaluation metric against env steps, mean ± std
+  over seeds shaded (clipped to the metric's range); published reference figures for the task
+  as dashed horizontal lines labelled "published".
+- `figure_ablation.png` and `.pdf` (paper Fig. 4), when the spec has variants of figure
+  `ablation`.
 - `results.md`: each line's score, mean ± std over seeds (a seed's score is its last greedy
   evaluation, or its mean evaluation over the spec's `score_window`: `Line.scores`), the
   ablation table with each run's resolved m, aggregate statistics with bootstrap confidence
-  intervals, the published figures, the paper's claims judged from the scores
-  (cmat.experiments.claims; with a window, also from the last evaluations alone) and what
+  intervals, the published figures, the paper's claims judged from the scores where the spec
+  asks for them (`claims: true`; cmat.experiments.claims; with a window, also from the last
+  evaluations alone) and what
   happened to every run; `results.json`: the same numbers;
   `marl_eval.json`: every evaluation of every run in marl-eval's format.
 """
@@ -51,13 +54,11 @@ def write_report(plan: Plan) -> list[Path]:
     references = load_references()
     suite_aggregates = load_suite_aggregates()
     written = []
-    path = plan.out / "figure_main.png"
-    draw(plan, lines, metrics, references, suite_aggregates, "main", path)
-    written.append(path)
+    written += draw(plan, lines, metrics, references, suite_aggregates, "main",
+                    plan.out / "figure_main.png")
     if any("ablation" in v.figures for v in plan.spec.variants):
-        path = plan.out / "figure_ablation.png"
-        draw(plan, lines, metrics, references, suite_aggregates, "ablation", path)
-        written.append(path)
+        written += draw(plan, lines, metrics, references, suite_aggregates, "ablation",
+                        plan.out / "figure_ablation.png")
     summary = summarise(plan, lines, metrics, references)
     (plan.out / "results.json").write_text(json.dumps(summary, indent=1))
     (plan.out / "results.md").write_text(markdown(plan, summary))
@@ -111,9 +112,10 @@ def summarise(
                  for run in plan.runs],
     }
     summary["compute"] = compute_totals(summary["runs"])
-    summary["claims"] = judge_claims(summary, plan.spec)
-    if plan.spec.score_window > 0:
-        summary["claims_from_finals"] = judge_claims(summary, plan.spec, scores="finals")
+    if plan.spec.claims:
+        summary["claims"] = judge_claims(summary, plan.spec)
+        if plan.spec.score_window > 0:
+            summary["claims_from_finals"] = judge_claims(summary, plan.spec, scores="finals")
     return summary
 
 

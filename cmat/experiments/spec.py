@@ -23,7 +23,7 @@ from cmat.errors import CmatError, read_text
 
 FIGURES = ("main", "ablation", "none")
 SPEC_KEYS = ("name", "description", "steps", "seeds", "seed", "seeds_per_run", "set", "envs",
-             "algos", "variants", "bootstrap_reps", "score_window", "baselines")
+             "algos", "variants", "bootstrap_reps", "score_window", "baselines", "claims")
 ENV_KEYS = ("id", "steps", "set", "label", "unavailable")
 VARIANT_KEYS = ("algos", "envs", "set", "steps", "from", "finetune", "figure", "label")
 
@@ -87,6 +87,9 @@ class ExperimentSpec:
     baselines: tuple[str, ...] = ()
     """Classical policies evaluated beside the learned lines on the dispatch tasks
     (`cmat.experiments.baselines`)."""
+    claims: bool = False
+    """Whether the report judges the CMAT paper's claims (cmat.experiments.claims) from this
+    grid: for the grids built to test them, not for every grid."""
 
     def variant(self, name: str) -> Variant:
         return next(v for v in self.variants if v.name == name)
@@ -169,7 +172,14 @@ def load_spec(path: Path | str) -> ExperimentSpec:
         bootstrap_reps=positive_int(raw.get("bootstrap_reps", 2000), f"{where}: bootstrap_reps"),
         score_window=fraction(raw.get("score_window", 0.0), f"{where}: score_window"),
         baselines=baseline_list(raw.get("baselines"), ids, f"{where}: baselines"),
+        claims=boolean(raw.get("claims", False), f"{where}: claims"),
     )
+
+
+def boolean(value: Any, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise CmatError(f"{where} must be true or false, got {value!r}")
+    return value
 
 
 def baseline_list(value: Any, ids: list[str], where: str) -> tuple[str, ...]:
