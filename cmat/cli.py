@@ -13,6 +13,7 @@ import json
 import os
 import sys
 import textwrap
+import time
 from dataclasses import asdict
 from pathlib import Path
 from typing import NoReturn
@@ -336,9 +337,23 @@ def eval_command(args: argparse.Namespace) -> None:
         return
     if args.run is None:
         raise CmatError("cmat eval needs --run DIR (or --baseline NAME with --env ID or --run)")
-    extra, per_seed = evaluate_run(RunDir.open(args.run), args.episodes, args.actions, args.seed,
+    run_dir = RunDir.open(args.run)
+    config = run_dir.config()
+    episodes = args.episodes or config.eval_episodes
+    progress(f"evaluating {run_dir.path}: {episodes:,} episodes for each of {config.seeds} "
+             f"seed{'s' if config.seeds > 1 else ''} on {config.env} (compiling first) ...")
+    start = time.perf_counter()
+    extra, per_seed = evaluate_run(run_dir, args.episodes, args.actions, args.seed,
                                    args.iterations)
+    progress(f"evaluated in {time.perf_counter() - start:.0f} s")
     print(json.dumps({**extra, "per_seed": per_seed}))
+
+
+def progress(message: str) -> None:
+    """A progress line on stderr where it is a terminal (a script that reads stdout or a log
+    gets none)."""
+    if sys.stderr.isatty():
+        print(f"cmat: {message}", file=sys.stderr, flush=True)
 
 
 def baseline_command(args: argparse.Namespace) -> None:

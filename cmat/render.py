@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from tqdm import tqdm
 
 from cmat.errors import CmatError
 
@@ -65,17 +66,17 @@ def render_episodes(
     limit = policy.spec.max_episode_steps if max_steps is None else max_steps
     if limit <= 0:
         raise CmatError(f"--max-steps must be > 0, got {limit}")
-    if policy.config.env.partition(":")[0] in ("smax", "mpe"):
-        frames = list(jaxmarl_frames(policy, episodes, seed, limit))
-        figure, draw = jaxmarl_drawing(policy, frames)
-    else:
-        frames = list(host_frames(policy, episodes, seed, limit))
-        figure, draw = picture_drawing(frames)
+    in_graph = policy.config.env.partition(":")[0] in ("smax", "mpe")
+    played = (jaxmarl_frames if in_graph else host_frames)(policy, episodes, seed, limit)
+    frames = list(tqdm(played, desc=f"playing {episodes} episode{'s' * (episodes > 1)}",
+                       unit="frame", disable=None, leave=False))
+    figure, draw = jaxmarl_drawing(policy, frames) if in_graph else picture_drawing(frames)
     writer = (animation.PillowWriter(fps=fps) if out.suffix.lower() == ".gif"
               else animation.FFMpegWriter(fps=fps))
     out.parent.mkdir(parents=True, exist_ok=True)
     with writer.saving(figure, str(out), dpi=80):
-        for frame in frames:
+        for frame in tqdm(frames, desc=f"drawing {out.name}", unit="frame", disable=None,
+                          leave=False):
             draw(frame)
             figure.suptitle(f"{policy.config.env} · {frame.title}", fontsize=9)
             writer.grab_frame()

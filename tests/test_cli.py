@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -93,6 +94,18 @@ def test_train_writes_a_complete_run_directory(trained: Path) -> None:
     data, steps = RunDir.open(trained).load_checkpoint()
     assert steps == 2000 and len(data) > 0
     assert (trained / "curve.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_eval_shows_progress_on_a_terminal_only(
+    trained: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    assert main(["eval", "--run", str(trained), "--episodes", "2"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert lines[0].startswith(f"cmat: evaluating {trained}: 2 episodes for each of 2 seeds")
+    assert re.fullmatch(r"cmat: evaluated in \d+ s", lines[1]) and len(lines) == 2
+    assert json.loads(captured.out)["episodes_per_seed"] == 2
 
 
 def test_eval_prints_one_json_object_with_an_entry_per_seed(
