@@ -333,11 +333,16 @@ def train_into(
     the initial checkpoint."""
     try:
         run_training(trainer, run_dir, resume=resume, start=start)
-    except CmatError as error:
+    except (CmatError, OSError) as error:
+        message = (f"cannot write {error.filename}: {error.strerror}"
+                   if isinstance(error, OSError) and error.filename else str(error))
         if resume or run_dir.metrics_path.exists():
+            if isinstance(error, OSError):
+                raise CmatError(f"{message}; the run keeps its last checkpoint: continue with "
+                                f"cmat train --resume {run_dir.path}") from None
             raise
         shutil.rmtree(run_dir.path, ignore_errors=True)
-        raise CmatError(f"{error}; the new run directory {run_dir.path} was removed") from None
+        raise CmatError(f"{message}; the new run directory {run_dir.path} was removed") from None
     except KeyboardInterrupt:
         if resume or run_dir.metrics_path.exists():
             print(f"cmat: stopped at the last checkpoint; continue with: "

@@ -22,6 +22,7 @@ the checkpoint's env_steps belong to a chunk that never finished and are dropped
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import fcntl
@@ -156,7 +157,13 @@ class RunDir:
         except FileExistsError:
             raise CmatError(f"{run.path} already holds a run; use --resume {run.path} or "
                             f"another --out") from None
-        run.write_config(config, sources)
+        try:
+            run.write_config(config, sources)
+        except BaseException:  # a config that was never written does not make a run
+            run.config_path.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                run.path.rmdir()
+            raise
         return run
 
     @classmethod
@@ -365,7 +372,7 @@ class RunDir:
         if not header:
             writer.writeheader()
         writer.writerows({key: csv_value(value) for key, value in row.items()} for row in rows)
-        with self.metrics_path.open("a") as file:
+        with naming(self.metrics_path), self.metrics_path.open("a") as file:
             file.write(buffer.getvalue())
             file.flush()
             os.fsync(file.fileno())
@@ -463,8 +470,26 @@ def sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+@contextmanager
+def naming(path: Path) -> Iterator[None]:
+    """Re-raise an OSError without a file name (a full disk while writing) as one that names
+    `path`, so that its one-line error says which file could not be written."""
+    try:
+        yield
+    except OSError as error:
+        if error.filename is not None:
+            raise
+        raise OSError(error.errno, error.strerror or str(error), str(path)) from None
+
+
 def atomic_write(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a synced temporary file in the same directory."""
+    """Write `data` to `path` through a synced temporary file in the same directory. An
+    OSError names `path`; the previous file stays as it was."""
+    with naming(path):
+        atomic_write_named(path, data)
+
+
+def atomic_write_named(path: Path, data: bytes) -> None:
     descriptor, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     try:
         with os.fdopen(descriptor, "wb") as file:

@@ -524,3 +524,56 @@ def test_a_network_edited_in_config_yaml_is_refused_not_evaluated_with_old_weigh
         line = one_error_line(capsys.readouterr().err)
         assert f"network.{field} is {value!r} there" in line
         assert "a run's network cannot change" in line
+
+
+def full_disk_at(monkeypatch: pytest.MonkeyPatch, name: str) -> None:
+    """Every write of a file called `name` in a run directory fails as a full disk does: an
+    OSError that names no file."""
+    import tempfile
+
+    from cmat import rundir
+
+    real = tempfile.mkstemp
+
+    def mkstemp(*args: object, **kwargs: object) -> tuple[int, str]:
+        if str(kwargs.get("prefix", "")).startswith(f".{name}."):
+            raise OSError(28, "No space left on device")
+        return real(*args, **kwargs)  # type: ignore[call-overload, no-any-return]
+
+    monkeypatch.setattr(rundir.tempfile, "mkstemp", mkstemp)
+
+
+@pytest.mark.parametrize("name", ["config.yaml", "latest.ckpt"])
+def test_a_full_disk_names_the_file_and_leaves_no_dead_end(
+    name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    out = tmp_path / "run"
+    argv = ["train", "--env", "matrix:fig1", "--steps", "200", "--out", str(out), "--set",
+            "num_envs=4", "rollout_length=25", "ppo.epochs=1"]
+    with monkeypatch.context() as patch:
+        full_disk_at(patch, name)
+        assert main(argv) == 2
+    error = one_error_line(capsys.readouterr().err)
+    assert name in error and "No space left on device" in error
+    assert not out.exists()  # the same --out starts the run once there is room
+    assert main(argv) == 0 and RunDir.open(out).checkpoint_steps()[0] == 200
+
+
+def test_a_full_disk_during_a_run_keeps_the_last_checkpoint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "run"
+    settings = ["--set", "num_envs=4", "rollout_length=25", "ppo.epochs=1", "log_interval=1"]
+    assert main(["train", "--env", "matrix:fig1", "--steps", "200", "--out", str(out),
+                 *settings]) == 0
+    with monkeypatch.context() as patch:
+        full_disk_at(patch, "latest.ckpt")
+        assert main(["train", "--resume", str(out), "--steps", "400"]) == 2
+    stderr = capsys.readouterr().err  # the progress bar of the chunks before, then the error
+    error = stderr.strip().splitlines()[-1]
+    assert "Traceback" not in stderr and error.startswith("cmat: error: cannot write ")
+    assert "latest.ckpt" in error and f"cmat train --resume {out}" in error
+    assert RunDir.open(out).checkpoint_steps()[0] == 200
+    assert main(["train", "--resume", str(out), "--steps", "400"]) == 0
+    assert RunDir.open(out).checkpoint_steps()[0] == 400
