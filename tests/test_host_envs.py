@@ -507,3 +507,31 @@ def test_sampled_evaluation_through_the_host_runner() -> None:
         assert other != mean and abs(other - 5 / 12) < 4 * 0.62 / np.sqrt(episodes), other
     finally:
         trainer.close()
+
+
+def test_an_evaluation_resets_each_simulator_once_per_episode(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each slot is reset (seeded) at the start of an evaluation and between its episodes, and
+    not again after its last one: the next evaluation's seeded reset would repeat that work."""
+    seeds: list[int | None] = []
+    reset = SignalGame.reset
+
+    def counted(self: SignalGame, seed: int | None = None, options: Any = None) -> Any:
+        seeds.append(seed)
+        return reset(self, seed=seed, options=options)
+
+    monkeypatch.setattr(SignalGame, "reset", counted)
+    trainer = HostTrainer(config(SIGNAL, "num_envs=2", "seeds=2", "host_workers=0"))
+    state = trainer.init()
+    for episodes in (2, 5):  # per seed, on 2 slots: 1 + 1, then 3 + 2 episodes
+        seeds.clear()
+        result = trainer.evaluate(state, episodes, episode_seed=7)
+        assert len(seeds) == 2 * episodes, seeds  # 2 seeds: one reset per episode
+        assert seeds.count(None) == 2 * (episodes - 2)  # between a slot's episodes only
+        assert result["episode_return"].shape == (2,)
+    pool = trainer._eval_pool
+    assert pool is not None
+    batch = pool.step(np.zeros((4, 2), int), np.zeros(4, bool))  # resting: no simulator call
+    seeds.clear()
+    assert not batch.done.any() and not batch.reward.any() and seeds == []

@@ -293,7 +293,8 @@ class HostTrainer:
                 state.learner.params, memory, obs, mask, self._per_seed(timestep.done),
                 self._per_seed(timestep.global_state), act_key)
             actions = np.asarray(actions)
-            timestep = self._eval_pool.step(actions.reshape(-1, *actions.shape[2:]))
+            more = (tally.finished + 1 < quota).reshape(-1)  # else the slot's last episode
+            timestep = self._eval_pool.step(actions.reshape(-1, *actions.shape[2:]), more)
             tally = tally_step(tally, self._per_seed(timestep.reward),
                                self._per_seed(timestep.done), self._per_seed(timestep.won), quota)
         result: dict[str, np.ndarray] = tally_result(tally, quota, episodes, spec)

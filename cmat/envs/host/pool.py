@@ -130,13 +130,15 @@ class InProcessPool:
                 timesteps.append(self._restart(index, str(crash)))
         return stack(timesteps)
 
-    def step(self, actions: np.ndarray) -> HostBatch:
-        """Step environment i with `actions[i]`; one whose simulator crashes is restarted
+    def step(self, actions: np.ndarray, reset: np.ndarray | None = None) -> HostBatch:
+        """Step environment i with `actions[i]`, starting its next episode if this one ends
+        unless `reset[i]` is False (`HostEnv.step`); one whose simulator crashes is restarted
         (module doc)."""
         timesteps = []
         for index, env in enumerate(self.envs):
             try:
-                timesteps.append(env.step(actions[index]))
+                timesteps.append(env.step(actions[index],
+                                          True if reset is None else bool(reset[index])))
                 self._in_a_row[index] = 0
             except SimulatorCrash as crash:
                 timesteps.append(self._restart(index, str(crash)))
@@ -207,7 +209,7 @@ def worker_main(conn: multiprocessing.connection.Connection, env_id: str,
         if command not in ("step", "reset"):
             break
         try:
-            batch = pool.step(data) if command == "step" else pool.reset(data)
+            batch = pool.step(*data) if command == "step" else pool.reset(data)
             reply: tuple[Any, ...] = ("ok", batch, pool.counters())
         except CmatError as error:
             reply = ("error", str(error))
@@ -301,9 +303,11 @@ class WorkerPool:
         self._seeds = list(seeds) if seeds is not None else self._seeds
         return self._all("reset", lambda w: self._seeds[w.slots])
 
-    def step(self, actions: np.ndarray) -> HostBatch:
-        """Step environment i with `actions[i]`; a dead worker is replaced (module doc)."""
-        return self._all("step", lambda w: actions[w.slots])
+    def step(self, actions: np.ndarray, reset: np.ndarray | None = None) -> HostBatch:
+        """Step environment i with `actions[i]` (`InProcessPool.step`); a dead worker is
+        replaced (module doc)."""
+        return self._all("step", lambda w: (actions[w.slots],
+                                            None if reset is None else reset[w.slots]))
 
     def counters(self) -> dict[str, np.ndarray]:
         """Per slot: restarts so far (inside workers and of dead workers) and non-finite values

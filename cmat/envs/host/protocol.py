@@ -81,9 +81,12 @@ class HostEnv(Protocol):
 
     def reset(self, seed: int | None = None) -> HostStep: ...
 
-    def step(self, actions: np.ndarray) -> HostStep:
+    def step(self, actions: np.ndarray, reset: bool = True) -> HostStep:
         """`actions`: [n_agents] ints, or [n_agents, action_dim] floats in the range of
-        `spec.action_low/high` (the PettingZoo adapter maps [-1, 1] onto each agent's Box)."""
+        `spec.action_low/high` (the PettingZoo adapter maps [-1, 1] onto each agent's Box).
+        With `reset` False an episode that ends is not followed by the next one: the simulator
+        rests (later steps return its last observation, reward 0, not done, and call nothing)
+        until `reset`; an evaluation ends its last episode of a slot this way."""
         ...
 
     def description(self) -> dict[str, Any]:
@@ -108,22 +111,31 @@ class AutoReset:
     """Values replaced by 0 so far (`nonfinite` "warn")."""
     episode_step: int = 0
     """Transitions taken in the current episode (0 at its reset)."""
+    resting: HostStep | None = None
+    """After an episode that ended with `step(..., reset=False)`: what later steps return."""
 
     def reset(self, seed: int | None = None) -> HostStep:
         """Start an episode (seeded where `seed` is given)."""
         self.episode_step = 0
+        self.resting = None
         obs, mask = self._reset(seed)
         return self._checked(obs, mask, 0.0, False, False)
 
-    def step(self, actions: np.ndarray) -> HostStep:
-        """Step; when the episode ends, the next one starts and its first observation returns."""
+    def step(self, actions: np.ndarray, reset: bool = True) -> HostStep:
+        """Step; when the episode ends, the next one starts and its first observation returns
+        (with `reset` False: the simulator rests, `HostEnv.step`)."""
+        if self.resting is not None:
+            return self.resting
         self.episode_step += 1
         obs, mask, reward, done, won = self._step(actions)
         finite_reward = self._finite(np.float32(reward), "reward", None)
-        if done:
+        if done and reset:
             self.episode_step = 0
             obs, mask = self._reset(None)
-        return self._checked(obs, mask, float(finite_reward), bool(done), bool(won and done))
+        timestep = self._checked(obs, mask, float(finite_reward), bool(done), bool(won and done))
+        if done and not reset:
+            self.resting = timestep._replace(reward=0.0, done=False, won=False)
+        return timestep
 
     def _checked(self, obs: np.ndarray, mask: np.ndarray, reward: float, done: bool,
                  won: bool) -> HostStep:
@@ -210,9 +222,9 @@ class HostAgentIdWrapper:
         """Start an episode."""
         return self._with_id(self.env.reset(seed))
 
-    def step(self, actions: np.ndarray) -> HostStep:
+    def step(self, actions: np.ndarray, reset: bool = True) -> HostStep:
         """Step the wrapped environment."""
-        return self._with_id(self.env.step(actions))
+        return self._with_id(self.env.step(actions, reset))
 
     def description(self) -> dict[str, Any]:
         """The wrapped environment's description."""
