@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 from cmat.config import INT32_MAX, ConfigSources, TrainConfig, resolve_iterations, validate
 from cmat.errors import CmatError
 from cmat.resolve import resolve_config
-from cmat.rundir import RunDir
+from cmat.rundir import Checkpoint, RunDir
 from cmat.runners.loop import resume_is_complete, run_training
 
 if TYPE_CHECKING:
@@ -94,11 +94,13 @@ class Run:
         actions: str | None = None,
         seed: int = 0,
         iterations: int | None = None,
+        checkpoint: Checkpoint = "latest",
     ) -> pd.DataFrame:
         """`cmat eval`: evaluate the latest checkpoint on `episodes` fresh episodes per seed
         (default the run's `eval_episodes`), acting `greedy` or `sample` (default the run's
         `eval_actions`); `seed` picks the episodes (docs/evaluation.md); `iterations` runs a
-        CMAT decoder for fewer consensus iterations than it was trained with.
+        CMAT decoder for fewer consensus iterations than it was trained with; `checkpoint` is
+        `latest`, `best` or the env steps of a kept periodic one.
 
         Returns one row per trained seed (`seed` and the evaluation metrics: `episode_return`,
         `win_rate`, environment metrics); `frame.attrs` holds what `cmat eval` prints beside
@@ -107,16 +109,22 @@ class Run:
         import pandas as pd
 
         extra, per_seed = evaluate_run(RunDir.open(self.path), episodes, actions, seed,
-                                       iterations)
+                                       iterations, checkpoint)
         frame = pd.DataFrame(per_seed).astype(float).astype({"seed": "int64"})
         frame.attrs.update(extra)
         return frame
 
-    def policy(self, seed: int | None = None) -> Policy:
-        """One seed's trained policy (default the run's first seed): `cmat.load_policy`."""
+    def policy(self, seed: int | None = None, checkpoint: Checkpoint = "latest") -> Policy:
+        """One seed's trained policy (default the run's first seed) from `checkpoint`:
+        `cmat.load_policy`."""
         from cmat.policy import load_policy
 
-        return load_policy(self.path, seed)
+        return load_policy(self.path, seed, checkpoint)
+
+    @property
+    def checkpoints(self) -> list[Checkpoint]:
+        """The checkpoints the run keeps: latest, best, then periodic ones by env steps."""
+        return RunDir(self.path).checkpoints()
 
     def resume(self, steps: int | None = None) -> Run:
         """`cmat train --resume`: continue training to the run's budget (or to `steps` per
@@ -245,6 +253,7 @@ def evaluate_run(
     actions: str | None,
     episode_seed: int,
     iterations: int | None,
+    checkpoint: Checkpoint = "latest",
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """`cmat eval` of `run_dir`'s checkpoint: what it reports beside the metrics, and a row per
     seed (`seed` and each metric, NaN as None). Raises CmatError for an argument out of
@@ -264,11 +273,13 @@ def evaluate_run(
     from cmat.runners.base import restore_run
 
     trainer = build_trainer(config)
-    state, env_steps = restore_run(run_dir, trainer)
+    state, env_steps = restore_run(run_dir, trainer, checkpoint)
     extra: dict[str, Any] = {
-        "env_steps": env_steps, "budget_steps": config.budget_steps,
+        "checkpoint": checkpoint, "env_steps": env_steps, "budget_steps": config.budget_steps,
         "complete": env_steps == config.budget_steps,
     }
+    if checkpoint == "best":
+        extra["best_env_steps"] = (run_dir.checkpoint_header("best") or {})["best"]["env_steps"]
     if config.algo == "cmat":
         trained = resolve_iterations(config.network.consensus_iterations,
                                      trainer.env_spec.num_agents)

@@ -41,7 +41,7 @@ from cmat.envs.suites import SUITES
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import resolve_config
-from cmat.rundir import RunDir
+from cmat.rundir import RunDir, parse_checkpoint
 from cmat.runners.loop import resume_is_complete
 from cmat.version import __version__
 
@@ -52,6 +52,18 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"cmat: error: {message} (see `{self.prog} --help`)\n")
+
+
+CHECKPOINT_HELP = ("which checkpoint: latest (default), best (each seed's parameters at its best "
+                   "evaluation) or the env steps of a kept periodic one")
+
+
+def checkpoint_argument(text: str) -> str | int:
+    """`--checkpoint`'s value (`parse_checkpoint`), a usage error where it names none."""
+    try:
+        return parse_checkpoint(text)
+    except CmatError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -114,6 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help="which evaluation episodes (start states and draws) each seed "
                                "plays (default 0; training evaluates at env step t with seed t, "
                                "so 0 replays none of them)")
+    evaluate.add_argument("--checkpoint", type=checkpoint_argument, default="latest",
+                          metavar="WHICH", help=CHECKPOINT_HELP)
     evaluate.add_argument(
         "--iterations", type=int, metavar="K",
         help="CMAT only: run the decoder for K consensus iterations instead of the trained m "
@@ -130,6 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="which of the run's seeds (default: its first); also seeds the "
                              "episodes")
     render.add_argument("--episodes", type=int, default=1, help="episodes to draw (default 1)")
+    render.add_argument("--checkpoint", type=checkpoint_argument, default="latest",
+                        metavar="WHICH", help=CHECKPOINT_HELP)
     render.add_argument("--fps", type=int, default=8, help="frames per second (default 8)")
     render.add_argument("--max-steps", type=int, metavar="N",
                         help="draw at most N steps of each episode (default: whole episodes)")
@@ -158,6 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="consensus: train only Critic-MLP, decoder, Actor-Compressor; "
              "action: train only Critic-MLP and Actor-MLP",
     )
+    finetune.add_argument("--checkpoint", type=checkpoint_argument, default="latest",
+                          metavar="WHICH", help=CHECKPOINT_HELP)
     finetune.add_argument("--steps", type=int,
                           help="fine-tuning env steps per seed (default: the source's total_steps)")
     finetune.add_argument(
@@ -344,7 +362,7 @@ def eval_command(args: argparse.Namespace) -> None:
              f"seed{'s' if config.seeds > 1 else ''} on {config.env} (compiling first) ...")
     start = time.perf_counter()
     extra, per_seed = evaluate_run(run_dir, args.episodes, args.actions, args.seed,
-                                   args.iterations)
+                                   args.iterations, args.checkpoint)
     progress(f"evaluated in {time.perf_counter() - start:.0f} s")
     print(json.dumps({**extra, "per_seed": per_seed}))
 
@@ -392,12 +410,14 @@ def finetune_command(args: argparse.Namespace) -> None:
                                       args.set, source_dir.sources())
     from cmat.runners.base import restore_run
 
-    source_state, source_steps = restore_run(source_dir, build_trainer(source_config))
+    source_state, source_steps = restore_run(source_dir, build_trainer(source_config),
+                                             args.checkpoint)
     trainer = build_trainer(config)
     state = finetune_start(trainer, source_state)
     run_dir = (RunDir.create_named(default_out(config), config, sources) if args.out is None
                else RunDir.create(args.out, config, sources))
-    print(f"fine-tuning ({args.mode}) from {source_dir.path} at {source_steps} env steps",
+    print(f"fine-tuning ({args.mode}) from {source_dir.path}'s {args.checkpoint} checkpoint "
+          f"at {source_steps} env steps",
           file=sys.stderr)
     train_into(trainer, run_dir, resume=False, start=state)
 
@@ -415,7 +435,7 @@ def render_command(args: argparse.Namespace) -> None:
     from cmat.render import check_request, render_episodes
 
     check_request(RunDir.open(args.run).config().env, args.out, args.episodes, args.fps)
-    policy = load_policy(args.run, args.seed)
+    policy = load_policy(args.run, args.seed, args.checkpoint)
     frames = render_episodes(policy, args.out, args.episodes, policy.seed, args.fps,
                              args.max_steps)
     print(f"wrote {args.out} ({frames} frames, seed {policy.seed})")

@@ -217,6 +217,13 @@ class TrainConfig:
     'sample', actions drawn from the policy as in training (Mava evaluates Sable so). Agents
     that see the same observation take the same greedy action: a fleet's vehicles in one zone
     can spread over its orders only by sampling (`cmat.envs.dispatch`)."""
+    checkpoint_interval: int = 0
+    """Env steps per seed between the periodic checkpoints kept beside `latest` and `best`
+    (`checkpoints/step-N.ckpt`, written at the first chunk at or past each multiple); 0 keeps
+    none."""
+    keep_checkpoints: int = 5
+    """How many periodic checkpoints to keep, the most recent (older ones are deleted as new
+    ones are written); 0 keeps them all."""
     host_workers: int | None = None
     """Host environments only: worker processes that step them (0: in this process); None takes
     the suite's measured default (cmat.envs.host.DEFAULT_WORKERS)."""
@@ -282,6 +289,10 @@ def validate(config: TrainConfig) -> TrainConfig:
         (config.num_envs > 0, f"num_envs must be > 0, got {config.num_envs}"),
         (config.rollout_length > 0, f"rollout_length must be > 0, got {config.rollout_length}"),
         (config.eval_episodes > 0, f"eval_episodes must be > 0, got {config.eval_episodes}"),
+        (config.checkpoint_interval >= 0,
+         f"checkpoint_interval must be >= 0, got {config.checkpoint_interval}"),
+        (config.keep_checkpoints >= 0,
+         f"keep_checkpoints must be >= 0, got {config.keep_checkpoints}"),
         (config.eval_actions in EVAL_ACTIONS,
          f"eval_actions must be greedy or sample, got {config.eval_actions!r}"),
         (config.host_workers is None or config.host_workers >= 0,

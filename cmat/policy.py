@@ -28,7 +28,7 @@ from cmat.algorithms.base import initial_memories
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
-from cmat.rundir import RunDir
+from cmat.rundir import Checkpoint, RunDir
 
 if TYPE_CHECKING:
     from cmat.algorithms.base import Algorithm
@@ -45,7 +45,8 @@ class Policy:
     seed: int
     """The seed of the run these parameters belong to (`config.seed + index`)."""
     env_steps: int
-    """Env steps the checkpoint was trained for (below `config.budget_steps` if unfinished)."""
+    """Env steps the parameters were trained for (below `config.budget_steps` if unfinished;
+    from the best checkpoint, those of the seed's best evaluation)."""
     algorithm: Algorithm
     params: Any
 
@@ -196,9 +197,13 @@ def _sample_team(
     return env_actions(policy.spec, actions)
 
 
-def load_policy(run_dir: str | Path, seed: int | None = None) -> Policy:
-    """The policy of seed `seed` (default: the run's first, `config.seed`) from the latest
-    checkpoint of the run directory `run_dir`, which may be unfinished (see `Policy.complete`).
+def load_policy(
+    run_dir: str | Path, seed: int | None = None, checkpoint: Checkpoint = "latest"
+) -> Policy:
+    """The policy of seed `seed` (default: the run's first, `config.seed`) from checkpoint
+    `checkpoint` of the run directory `run_dir`: `latest` (which may be unfinished, see
+    `Policy.complete`), `best` (the seed's parameters at its best evaluation; `env_steps` says
+    when) or the env steps of a periodic one (cmat.runners.checkpoints).
 
     Raises CmatError for a `run_dir` that is not a path or holds no run or checkpoint, a corrupt
     checkpoint, a seed that is not an int or that the run did not train, or a run whose files
@@ -218,7 +223,9 @@ def load_policy(run_dir: str | Path, seed: int | None = None) -> Policy:
         seeds = f"{config.seed}..{config.seed + config.seeds - 1}"
         raise CmatError(f"{run.path} trained seeds {seeds}; there is no seed {seed}")
     trainer = build_trainer(config)
-    state, env_steps = restore_run(run, trainer)
+    state, env_steps = restore_run(run, trainer, checkpoint)
+    if checkpoint == "best":
+        env_steps = int((run.checkpoint_header("best") or {})["best"]["env_steps"][index])
     params = jax.tree.map(lambda leaf: np.asarray(leaf)[index], state.learner.params)
     trainer.close()
     return Policy(trainer.env_spec, config, seed, env_steps, trainer.learner_setup.algorithm,

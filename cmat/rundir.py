@@ -3,9 +3,12 @@
 Layout::
 
     DIR/config.yaml            the full resolved TrainConfig
-    DIR/metrics.csv            one row per seed and chunk: kind (train|eval), seed, env_steps, ...
+    DIR/metrics.csv            one row per seed and chunk: kind (train|eval), seed, env_steps, ...;
+                           and once complete, the best checkpoint's `absolute` evaluation
     DIR/tb/                    TensorBoard events
-    DIR/checkpoints/latest.ckpt
+    DIR/checkpoints/latest.ckpt   the state after the last chunk (what a resume continues)
+    DIR/checkpoints/best.ckpt     each seed's parameters at its best evaluation so far
+    DIR/checkpoints/step-N.ckpt   periodic ones (`checkpoint_interval`, `keep_checkpoints`)
     DIR/sessions.jsonl         one line per training session: where it ran, for how long
     DIR/curve.png
 
@@ -62,8 +65,11 @@ DIAGNOSTIC_COLUMNS = (
 )
 """Per-update diagnostics of every algorithm (`cmat.algorithms.ppo.policy_diagnostics`)."""
 COLUMNS = (
-    "kind", "seed", "env_steps", "episode_return", "win_rate", *LOSS_COLUMNS, *DIAGNOSTIC_COLUMNS
+    "kind", "seed", "env_steps", "episode_return", "win_rate", *LOSS_COLUMNS, *DIAGNOSTIC_COLUMNS,
+    "best_env_steps",
 )
+"""The first columns of metrics.csv; `best_env_steps` is set on `absolute` rows only (the env
+steps the best checkpoint's parameters of that seed come from)."""
 PER_RUN_PREFIXES = ("entropy_agent_", "grad_norm_", "epochs_run", "env_restarts", "env_nonfinite")
 """Diagnostics whose names depend on the run (one per agent, one per parameter block, host
 environments' restarts and non-finite values replaced, cumulative per seed): their columns
@@ -71,6 +77,11 @@ follow COLUMNS in the order the first rows give them."""
 CHECKPOINT_MAGIC = b"CMAT-CHECKPOINT 1\n"
 
 Row = Mapping[str, str | int | float]
+Checkpoint = str | int
+"""Which checkpoint of a run: "latest", "best", or the env steps of a periodic one."""
+KINDS = ("train", "eval", "absolute")
+"""Kinds of metrics rows: a chunk's training and evaluation, and the best checkpoint's
+evaluation on ten times the episodes once the run completes (Mava's absolute metric)."""
 
 
 @dataclass(frozen=True)
@@ -94,6 +105,24 @@ class RunDir:
     @property
     def checkpoint_path(self) -> Path:
         return self.path / "checkpoints" / "latest.ckpt"
+
+    def checkpoint_file(self, which: Checkpoint = "latest") -> Path:
+        """The file of checkpoint `which`: `latest`, `best` or the env steps of a periodic one
+        (`checkpoints/step-STEPS.ckpt`)."""
+        name = which if isinstance(which, str) else f"step-{which:012d}"
+        return self.path / "checkpoints" / f"{name}.ckpt"
+
+    def checkpoints(self) -> list[Checkpoint]:
+        """The checkpoints this run keeps: latest, best, then the periodic ones by env steps."""
+        kept: list[Checkpoint] = [name for name in ("latest", "best")
+                                  if self.checkpoint_file(name).is_file()]
+        return kept + self.periodic_checkpoints()
+
+    def periodic_checkpoints(self) -> list[Checkpoint]:
+        folder = self.path / "checkpoints"
+        steps = [int(path.stem.removeprefix("step-")) for path in folder.glob("step-*.ckpt")
+                 if path.stem.removeprefix("step-").isdigit()] if folder.is_dir() else []
+        return list(sorted(steps))
 
     @property
     def header_path(self) -> Path:
@@ -248,40 +277,50 @@ class RunDir:
         atomic_write(self.config_path, to_yaml(config, sources).encode())
 
     def save_checkpoint(
-        self, data: bytes, env_steps: int, network: dict[str, Any] | None = None
+        self, data: bytes, env_steps: int, network: dict[str, Any] | None = None,
+        which: Checkpoint = "latest", extra: dict[str, Any] | None = None,
     ) -> None:
-        """Write the checkpoint: a header (env steps, size, checksum and, given, the `network`
-        config the parameters belong to) and the trainer's bytes."""
+        """Write checkpoint `which`: a header (env steps, size, checksum, given the `network`
+        config the parameters belong to, and `extra`: the best checkpoint's per-seed record)
+        and the trainer's bytes."""
         header: dict[str, Any] = {"env_steps": env_steps, "size": len(data),
                                   "sha256": sha256(data)}
         if network is not None:
             header["network"] = network
-        self.checkpoint_path.parent.mkdir(exist_ok=True)
-        atomic_write(
-            self.checkpoint_path,
-            CHECKPOINT_MAGIC + json.dumps(header).encode() + b"\n" + data,
-        )
+        header.update(extra or {})
+        path = self.checkpoint_file(which)
+        path.parent.mkdir(exist_ok=True)
+        atomic_write(path, CHECKPOINT_MAGIC + json.dumps(header).encode() + b"\n" + data)
 
-    def checkpoint_network(self) -> dict[str, Any] | None:
-        """The network config the latest checkpoint's header records (None: a checkpoint from
-        before headers recorded it, or none)."""
+    def checkpoint_header(self, which: Checkpoint = "latest") -> dict[str, Any] | None:
+        """The header of checkpoint `which` (None where it is missing or unreadable)."""
         try:
-            with self.checkpoint_path.open("rb") as file:
+            with self.checkpoint_file(which).open("rb") as file:
                 if file.read(len(CHECKPOINT_MAGIC)) != CHECKPOINT_MAGIC:
                     return None
                 header = json.loads(file.readline())
         except (OSError, ValueError):
             return None
-        network = header.get("network") if isinstance(header, dict) else None
+        return header if isinstance(header, dict) else None
+
+    def checkpoint_network(self, which: Checkpoint = "latest") -> dict[str, Any] | None:
+        """The network config checkpoint `which`'s header records (None: a checkpoint from
+        before headers recorded it, or none)."""
+        network = (self.checkpoint_header(which) or {}).get("network")
         return network if isinstance(network, dict) else None
 
-    def load_checkpoint(self) -> tuple[bytes, int]:
-        """The trainer bytes and env steps of the latest checkpoint, checked against its header."""
-        path = self.checkpoint_path
+    def load_checkpoint(self, which: Checkpoint = "latest") -> tuple[bytes, int]:
+        """The trainer bytes and env steps of checkpoint `which` (`checkpoint_file`), checked
+        against its header. CmatError where it is missing (naming those the run keeps) or
+        corrupt."""
+        path = self.checkpoint_file(which)
         if not path.is_file():
             kept = (" (an exported copy: it keeps the run's results, not its checkpoint)"
                     if self.header_path.is_file() else "")
-            raise CmatError(f"no checkpoint in {self.path}{kept}")
+            if which == "latest" or not self.checkpoint_path.is_file():
+                raise CmatError(f"no checkpoint in {self.path}{kept}")
+            raise CmatError(f"no checkpoint {which!r} in {self.path}; it keeps "
+                            f"{', '.join(map(str, self.checkpoints()))}")
         raw = path.read_bytes()
         if not raw.startswith(CHECKPOINT_MAGIC):
             raise CmatError(f"corrupt checkpoint: {path} (not a cmat checkpoint)")
@@ -311,9 +350,10 @@ class RunDir:
     def export(self, target: Path, checkpoint: bool = False) -> RunDir:
         """Copy this run's results to `target` without the checkpoint's bytes: config.yaml,
         metrics.csv, sessions.jsonl and the checkpoint's header as `checkpoints/latest.json`;
-        with `checkpoint`, the checked checkpoint itself instead of its header, so the copy
-        can be resumed or fine-tuned from. A copy already at `target` is replaced whole (built
-        beside it, then swapped in). CmatError where the checkpoint is missing or corrupt."""
+        with `checkpoint`, the checked latest checkpoint itself instead of its header, and the
+        best one, so the copy can be resumed or fine-tuned from (periodic ones stay behind). A
+        copy already at `target` is replaced whole (built beside it, then swapped in).
+        CmatError where the checkpoint is missing or corrupt."""
         if checkpoint:
             self.load_checkpoint()
         if self.checkpoint_path.exists() or not self.header_path.exists():
@@ -335,6 +375,9 @@ class RunDir:
             copy.header_path.parent.mkdir()
             if checkpoint:
                 shutil.copyfile(self.checkpoint_path, copy.checkpoint_path)
+                best = self.checkpoint_file("best")
+                if best.is_file():
+                    shutil.copyfile(best, copy.checkpoint_file("best"))
             else:
                 copy.header_path.write_text(json.dumps(header) + "\n")
             if target.exists():
@@ -386,7 +429,7 @@ class RunDir:
 
     def read_metrics(self) -> list[dict[str, str]]:
         """The rows of metrics.csv as strings (empty if there is none), after checking that the
-        header names kind, seed and env_steps and that each row has a `kind` of train or eval,
+        header names kind, seed and env_steps and that each row has a `kind` of `KINDS`,
         whole-number `seed` and `env_steps`, and a number (`nan` included) in every other
         non-empty cell. A last line without its newline (a write cut short) is left out, as
         `truncate_metrics` drops it on resume. Raises CmatError naming the file and the line
@@ -441,14 +484,25 @@ class RunDir:
         return SummaryWriter(str(self.tb_path), purge_step=purge_step)
 
 
+def parse_checkpoint(text: str) -> Checkpoint:
+    """`--checkpoint TEXT`: `latest`, `best`, or the env steps of a periodic checkpoint.
+    Raises CmatError for anything else."""
+    if text in ("latest", "best"):
+        return text
+    if text.isdigit():
+        return int(text)
+    raise CmatError(f"--checkpoint must be latest, best or the env steps of a kept checkpoint, "
+                    f"got {text!r}")
+
+
 def metrics_row_problem(header: list[str], cells: list[str]) -> str | None:
     """What is wrong with one metrics.csv row under `header`, or None."""
     if len(cells) != len(header):
         return f"{len(cells)} cells under {len(header)} columns"
     for column, cell in zip(header, cells):
         if column == "kind":
-            if cell not in ("train", "eval"):
-                return f"kind {cell!r} is neither train nor eval"
+            if cell not in KINDS:
+                return f"kind {cell!r} is none of {', '.join(KINDS)}"
         elif column in ("seed", "env_steps") or cell:
             try:
                 int(cell) if column in ("seed", "env_steps") else float(cell)

@@ -238,7 +238,7 @@ DAMAGED_METRICS = {
     "a fraction of a step": (lambda t: replace_cell(t, 4, "env_steps", "2.5").encode(),
                              "line 4: env_steps '2.5' is not a whole number"),
     "an unknown kind": (lambda t: replace_cell(t, 2, "kind", "test").encode(),
-                        "line 2: kind 'test' is neither train nor eval"),
+                        "line 2: kind 'test' is none of train, eval, absolute"),
     "a cell too many": (lambda t: replace_cell(t, 5, "seed", "0,0").encode(),
                         f"line 5: {len(COLUMNS) + 1} cells under {len(COLUMNS)} columns"),
     "a header without seeds": (lambda t: t.replace("seed,", "seeds,", 1).encode(),

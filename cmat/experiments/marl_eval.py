@@ -10,7 +10,9 @@ Layout (marl-eval's README, "Data format")::
 suite and task split the environment id (`smax:3m` → `smax`, `3m`); algorithm is the line's
 label in results.md; run is the seed. Each `step_K` is one evaluation of the run (cmat logs
 the mean over its greedy episodes, so each list holds that one mean); `absolute_metrics` is
-the last evaluation, the value results.json reports as the seed's final. Metrics a task does
+marl-eval's absolute metric, the run's `absolute` row (its best checkpoint evaluated on ten
+times the episodes, cmat.runners.checkpoints), or for a run from before those rows the last
+evaluation. Metrics a task does
 not have (a win rate where there is none, NaN) are left out. marl-eval compares the runs of a
 task step by step, so a line evaluated at other steps than the task's first line (a fine-tuning
 stage with its own budget) is left out of the file; results.json has it.
@@ -45,14 +47,20 @@ def marl_eval_data(lines: dict[str, list[Line]]) -> dict[str, Any]:
 
 
 def runs_of(rows: list[dict[str, str]]) -> dict[str, Any]:
-    """Per seed, its evaluations in step order and the last one as absolute metrics."""
+    """Per seed, its evaluations in step order and its absolute metrics (module doc)."""
     evaluations: dict[str, dict[int, dict[str, list[float]]]] = {}
+    absolute: dict[str, tuple[int, dict[str, list[float]]]] = {}
     for row in rows:
-        if row["kind"] != "eval":
+        if row["kind"] not in ("eval", "absolute"):
             continue
         values = {metric: [float(row[metric])] for metric in METRICS
                   if row.get(metric, "") != "" and not math.isnan(float(row[metric]))}
-        evaluations.setdefault(row["seed"], {})[int(row["env_steps"])] = values
+        at = int(row["env_steps"])
+        if row["kind"] == "absolute":
+            if at >= absolute.get(row["seed"], (-1, {}))[0]:
+                absolute[row["seed"]] = (at, values)
+        else:
+            evaluations.setdefault(row["seed"], {})[at] = values
     runs: dict[str, Any] = {}
     for seed, by_step in sorted(evaluations.items(), key=lambda item: int(item[0])):
         steps = sorted(by_step)
@@ -60,6 +68,6 @@ def runs_of(rows: list[dict[str, str]]) -> dict[str, Any]:
             f"step_{index}": {"step_count": step, **by_step[step]}
             for index, step in enumerate(steps)
         }
-        run["absolute_metrics"] = dict(by_step[steps[-1]])
+        run["absolute_metrics"] = dict(absolute.get(seed, (0, by_step[steps[-1]]))[1])
         runs[seed] = run
     return runs

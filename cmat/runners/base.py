@@ -21,7 +21,7 @@ import threadpoolctl
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
-from cmat.rundir import RunDir, network_record
+from cmat.rundir import Checkpoint, RunDir, network_record
 from cmat.runners.collector import EnvsState
 from cmat.runners.learner import LearnerSetup, LearnerState
 
@@ -183,9 +183,12 @@ def restore_state(
     return state
 
 
-def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
-    """The state in `run_dir`'s latest checkpoint, restored by `trainer` (built from the run's
-    config.yaml), and its env steps per seed.
+def restore_run(
+    run_dir: RunDir, trainer: Trainer, which: Checkpoint = "latest"
+) -> tuple[TrainerState, int]:
+    """The state in `run_dir`'s checkpoint `which` (latest, best or a periodic one's env steps:
+    cmat.runners.checkpoints), restored by `trainer` (built from the run's config.yaml), and its
+    env steps per seed.
 
     Raises CmatError naming the checkpoint where it is missing or corrupt, where its state does
     not fit `trainer` (a config.yaml edited since, or written by another cmat version: the
@@ -194,7 +197,7 @@ def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
     edited: they fix what one update is)."""
     from cmat.version import __version__
 
-    data, env_steps = run_dir.load_checkpoint()
+    data, env_steps = run_dir.load_checkpoint(which)
     try:
         state = trainer.from_bytes(data)
     except CmatError as error:
@@ -203,8 +206,8 @@ def restore_run(run_dir: RunDir, trainer: Trainer) -> tuple[TrainerState, int]:
                 if written == __version__ else
                 f"the run was written by {f'cmat {written}' if written else 'another cmat version'}"
                 f", this is cmat {__version__}")
-        raise CmatError(f"{run_dir.checkpoint_path}: {error}; {hint}") from None
-    recorded = run_dir.checkpoint_network()
+        raise CmatError(f"{run_dir.checkpoint_file(which)}: {error}; {hint}") from None
+    recorded = run_dir.checkpoint_network(which)
     if recorded is not None:
         expected = network_record(trainer.config)
         changed = [name for name in recorded if name in expected

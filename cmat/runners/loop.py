@@ -28,6 +28,7 @@ from cmat.rundir import (
     Session,
     network_record,
 )
+from cmat.runners.checkpoints import BestCheckpoint, keep_periodic
 
 if TYPE_CHECKING:
     from cmat.runners.base import Trainer, TrainerState
@@ -74,6 +75,7 @@ def train_locked(
         done = trainer.env_steps(state)
         run_dir.save_checkpoint(trainer.to_bytes(state), done, network_record(config))
     session = Session(run_dir, done)
+    best = BestCheckpoint(trainer, run_dir)
     watch = EpisodeEndWatch(config.env, trainer.env_spec.max_episode_steps)
     remaining = (config.budget_steps - done) // config.steps_per_update
     chunks = [config.updates_per_log] * (remaining // config.updates_per_log)
@@ -87,7 +89,7 @@ def train_locked(
                      postfix="compiling") as bar,
         ):
             for updates in chunks:
-                state = run_chunk(trainer, state, run_dir, writer, bar, updates, watch)
+                state = run_chunk(trainer, state, run_dir, writer, bar, updates, watch, best)
                 bar.compiled()
                 session.record(trainer.env_steps(state))
                 if interrupted():
@@ -95,6 +97,9 @@ def train_locked(
     except KeyboardInterrupt:
         run_dir.truncate_metrics(run_dir.load_checkpoint()[1])
         raise
+    absolute = best.absolute(state)
+    absolute["env_steps"] = np.full(config.seeds, config.budget_steps)
+    run_dir.append_metrics(seed_rows("absolute", absolute, config.seed))
     plot_runs([run_dir.path], run_dir.curve_path)
 
 
@@ -250,10 +255,10 @@ class EpisodeEndWatch:
 
 def run_chunk(
     trainer: Trainer, state: TrainerState, run_dir: RunDir, writer: ScalarWriters, bar: Progress,
-    updates: int, watch: EpisodeEndWatch,
+    updates: int, watch: EpisodeEndWatch, best: BestCheckpoint,
 ) -> TrainerState:
-    """`updates` updates, their evaluation, logs and checkpoint; `watch` sees each chunk's
-    train returns."""
+    """`updates` updates, their evaluation, logs and checkpoints (latest, `best`, periodic);
+    `watch` sees each chunk's train returns."""
     config = trainer.config
     before = trainer.env_steps(state)
     start = time.perf_counter()
@@ -267,7 +272,10 @@ def run_chunk(
     rows = seed_rows("train", train, config.seed) + seed_rows("eval", evaluation, config.seed)
     run_dir.append_metrics(rows)
     log_scalars(writer, rows, steps, steps_per_second)
-    run_dir.save_checkpoint(trainer.to_bytes(state), steps, network_record(config))
+    data = trainer.to_bytes(state)
+    run_dir.save_checkpoint(data, steps, network_record(config))
+    best.update(state, evaluation, steps)
+    keep_periodic(trainer, run_dir, data, before, steps)
     bar.set_postfix(postfix(evaluation, trainer.env_spec.has_win_rate), refresh=False)
     bar.update(steps - before)
     return state
