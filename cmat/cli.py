@@ -40,7 +40,7 @@ from cmat.envs import probe_env
 from cmat.envs.suites import SUITES
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
-from cmat.resolve import resolve_config
+from cmat.resolve import explain, resolve_config
 from cmat.rundir import RunDir, parse_checkpoint
 from cmat.runners.loop import resume_is_complete
 from cmat.version import __version__
@@ -195,6 +195,11 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--preset", metavar="NAME", help="a named setting of the algorithm")
     show.add_argument("--set", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
                       help="config overrides, as for train")
+    show.add_argument("--config", type=Path, metavar="FILE.yaml", help="YAML config file")
+    show.add_argument("--explain", metavar="KEY",
+                      help="print every layer's value of the field KEY (e.g. ppo.lr), top to "
+                           "bottom: the default, the suite, the algorithm, its task values, the "
+                           "preset, the file, the command line; the last one is used")
     show.set_defaults(handler=config_command)
 
     experiment = commands.add_parser(
@@ -278,7 +283,13 @@ def fail(message: str) -> int:
 def config_command(args: argparse.Namespace) -> None:
     """Print each field as `name = value  [source]` with its docstring indented below."""
     explicit = flag_overrides({"algo": args.algo, "env": args.env, "preset": args.preset})
-    config, sources = resolve_config(None, [*args.set, *explicit])
+    config, sources = resolve_config(args.config, [*args.set, *explicit])
+    if args.explain is not None:
+        rows = explain(args.explain, args.config, [*args.set, *explicit])
+        for number, (label, value) in enumerate(rows):
+            used = "  <- used" if number == len(rows) - 1 else ""
+            print(f"{args.explain} = {value!r}  [{label}]{used}")
+        return
     _, unavailable = probe_env(config.env, config.env_kwargs)
     docs = field_docs()
     flat = {**{k: v for k, v in asdict(config).items() if k not in NESTED_FIELDS},

@@ -9,6 +9,7 @@ of the layers (and the checks that depend on the algorithm) come from the algori
 
 from __future__ import annotations
 
+import difflib
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -65,6 +66,48 @@ def resolve_config(
 
     Raises CmatError for an unreadable file, a malformed override, an unknown preset or field,
     and every check of `validate` and `check_config`."""
+    schema, layers = config_layers(yaml_file, overrides, base, values)
+    try:
+        config = OmegaConf.to_object(OmegaConf.merge(schema, *(layer for _, layer in layers)))
+    except OmegaConfBaseException as error:
+        raise CmatError(f"invalid config: {config_error(error)}") from None
+    assert isinstance(config, TrainConfig)
+    sources = dict.fromkeys(field_names(), "default")
+    sources.update(base_sources or {})
+    for label, layer in layers:
+        sources.update(dict.fromkeys(layer_fields(OmegaConf.to_container(layer)), label))
+    return check_config(validate(config)), sources
+
+
+def explain(
+    key: str, yaml_file: Path | None = None, overrides: list[str] | tuple[str, ...] = ()
+) -> list[tuple[str, Any]]:
+    """Every layer's value of the field `key` (`ppo.lr`), top to bottom: the default, then each
+    layer of `resolve_config` that sets it (the last one wins). Raises CmatError for a key
+    that is no field, and as `resolve_config` for the file and overrides."""
+    if key not in field_names():
+        close = difflib.get_close_matches(key, field_names(), n=1)
+        raise CmatError(f"no config field {key!r}" + (f"; did you mean {close[0]!r}?"
+                                                       if close else "; see `cmat config`"))
+    section, _, field = key.rpartition(".")
+    default = getattr(TrainConfig(), section) if section else TrainConfig()
+    rows: list[tuple[str, Any]] = [("default", getattr(default, field))]
+    for label, layer in config_layers(yaml_file, overrides)[1]:
+        values = OmegaConf.to_container(layer)
+        if key in layer_fields(values):
+            assert isinstance(values, dict)
+            rows.append((label, values[section][field] if section else values[field]))
+    return rows
+
+
+def config_layers(
+    yaml_file: Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    base: TrainConfig | None = None,
+    values: Mapping[str, Any] | None = None,
+) -> tuple[Any, list[tuple[str, Any]]]:
+    """The schema (`base` or TrainConfig's defaults) and the layers over it, in the order of
+    `resolve_config`: (label, OmegaConf mapping) each."""
     schema = OmegaConf.structured(base if base is not None else TrainConfig)
     layers: list[tuple[str, Any]] = []
     try:
@@ -84,19 +127,13 @@ def resolve_config(
         merged = OmegaConf.merge(schema, *(layer for _, layer in layers))
         if base is None:
             layers[:0] = named_layers(merged.env, merged.algo, merged.preset)
-        config = OmegaConf.to_object(OmegaConf.merge(schema, *(layer for _, layer in layers)))
     except FileNotFoundError:
         raise CmatError(f"config file not found: {yaml_file}") from None
     except yaml.YAMLError as error:
         raise CmatError(f"config file {yaml_file} is not valid YAML: {one_line(error)}") from None
     except OmegaConfBaseException as error:
         raise CmatError(f"invalid config: {config_error(error)}") from None
-    assert isinstance(config, TrainConfig)
-    sources = dict.fromkeys(field_names(), "default")
-    sources.update(base_sources or {})
-    for label, layer in layers:
-        sources.update(dict.fromkeys(layer_fields(OmegaConf.to_container(layer)), label))
-    return check_config(validate(config)), sources
+    return schema, layers
 
 
 def nested(values: Mapping[str, Any]) -> dict[str, Any]:

@@ -96,3 +96,30 @@ def test_config_marks_the_network_fields_an_algorithm_does_not_read(
               if "not read by cmat" in line]
     assert unread == ["network.mlp_layers", "network.recurrent", "network.retention_decay",
                       "network.retention_chunk"]
+
+
+def test_explain_lists_every_layer_of_a_key_and_the_last_wins(
+    tmp_path: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A key set by every layer: the suite, the algorithm on a task, a preset, a file and the
+    command line each appear once, in that order, and the last is the resolved value."""
+    from cmat.resolve import explain, resolve_config
+
+    file = tmp_path / "mine.yaml"
+    file.write_text("ppo:\n  epochs: 7\n")
+    overrides = ["algo=mappo", "env=smax:5m_vs_6m", "preset=paper"]
+    rows = explain("ppo.epochs", file, overrides)
+    labels = [label for label, _ in rows]
+    assert labels[0] == "default" and labels[-1] == f"file {file}"
+    assert "algorithm mappo on smax:5m_vs_6m" in labels
+    assert rows[labels.index("algorithm mappo on smax:5m_vs_6m")][1] == 10
+    assert resolve_config(file, overrides)[0].ppo.epochs == rows[-1][1] == 7
+    rows = explain("ppo.epochs", file, [*overrides, "ppo.epochs=3"])
+    assert rows[-1] == ("command line", 3)
+    assert main(["config", "--algo", "mappo", "--env", "smax:5m_vs_6m", "--config", str(file),
+                 "--explain", "ppo.epochs"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[-1] == f"ppo.epochs = 7  [file {file}]  <- used"
+    assert len(lines) == len(explain("ppo.epochs", file, ["algo=mappo", "env=smax:5m_vs_6m"]))
+    assert main(["config", "--explain", "ppo.epoch"]) == 2
+    assert "did you mean 'ppo.epochs'?" in capsys.readouterr().err
