@@ -80,7 +80,10 @@ def test_train_writes_a_complete_run_directory(trained: Path) -> None:
     for kind in ("train", "eval"):
         keys = sorted((int(r["seed"]), int(r["env_steps"])) for r in written if r["kind"] == kind)
         assert keys == sorted((seed, steps) for seed in SEEDS for steps in chunks)
-    assert {r["kind"] for r in written} == {"train", "eval"}
+    assert {r["kind"] for r in written} == {"train", "eval", "absolute"}
+    absolute = [r for r in written if r["kind"] == "absolute"]
+    assert sorted(int(r["seed"]) for r in absolute) == list(SEEDS)
+    assert all(int(r["env_steps"]) == 2000 and r["best_env_steps"] for r in absolute)
     assert all(r["win_rate"] == "nan" for r in written)
     assert all(float(r["episode_return"]) >= 0 for r in written if r["kind"] == "eval")
     assert all(r["policy_loss"] and r["entropy"] for r in written if r["kind"] == "train")
@@ -217,7 +220,9 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
     keys = Counter((r["kind"], r["seed"], r["env_steps"]) for r in written)
     assert max(keys.values()) == 1
     assert {int(r["env_steps"]) for r in written} == set(range(CHUNK_STEPS, 3000 + 1, CHUNK_STEPS))
-    assert len(written) == 2 * len(SEEDS) * 6
+    assert len([r for r in written if r["kind"] != "absolute"]) == 2 * len(SEEDS) * 6
+    absolute = sorted(int(r["env_steps"]) for r in written if r["kind"] == "absolute")
+    assert absolute == [2000] * len(SEEDS) + [3000] * len(SEEDS)  # each time it completed
     assert RunDir.open(run_copy).config().total_steps == 3000
     assert RunDir.open(run_copy).load_checkpoint()[1] == 3000
 

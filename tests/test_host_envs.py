@@ -427,7 +427,8 @@ def test_halfcheetah_6x1_through_the_cli(tmp_path: Path, capsys: pytest.CaptureF
                  "env_kwargs.max_episode_steps=100"]) == 0
     with (out / "metrics.csv").open() as file:
         rows = list(csv.DictReader(file))
-    assert [(r["kind"], r["env_steps"]) for r in rows] == [("train", "400"), ("eval", "400")]
+    assert [(r["kind"], r["env_steps"]) for r in rows] == [("train", "400"), ("eval", "400"),
+                                                            ("absolute", "400")]
     assert all(r["win_rate"] == "nan" for r in rows)
     assert (float(rows[0]["env_restarts"]), float(rows[0]["env_nonfinite"])) == (0, 0)
     assert np.isfinite(float(rows[1]["episode_return"]))

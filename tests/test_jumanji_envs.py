@@ -306,7 +306,7 @@ def test_cmat_train_end_to_end(env_id: str, algo: str, tmp_path: Path) -> None:
     assert main(argv) == 0
     with (out / "metrics.csv").open(newline="") as file:
         rows = list(csv.DictReader(file))
-    assert {r["kind"] for r in rows} == {"train", "eval"}
+    assert {r["kind"] for r in rows} == {"train", "eval", "absolute"}
     assert max(int(r["env_steps"]) for r in rows) == 256
     evals = [r for r in rows if r["kind"] == "eval"]
     assert all(math.isfinite(float(r["episode_return"])) and r["win_rate"] == "nan"

@@ -285,7 +285,9 @@ def test_plot_draws_a_win_rate_panel_only_where_a_run_defines_it(tmp_path: Path)
     plot_runs([no_win.path], tmp_path / "one.png")
     plot_runs([no_win.path, with_win.path], tmp_path / "out" / "two.png")
     one, two = imread(tmp_path / "one.png"), imread(tmp_path / "out" / "two.png")
-    assert one.shape[0] == two.shape[0] and two.shape[1] == 2 * one.shape[1]
+    # a panel is a paper's column wide; two take its text width
+    assert (one.shape[1], two.shape[1]) == (round(plots.COLUMN_INCHES * plots.PRINT_DPI),
+                                            round(plots.TEXT_INCHES * plots.PRINT_DPI))
 
 
 @pytest.mark.parametrize(("label_length", "rows"), [(6, 1), (40, 5), (90, 10)])
