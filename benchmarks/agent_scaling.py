@@ -5,7 +5,8 @@
         [--merge OLD.json ...]
 
 Every team is a SMAX map (`smax:Nm` beyond SMAX's own: N marines a side, built with SMAX's
-scenario API). One config for every point: the reference PPO settings (15 epochs, one
+scenario API), or any environment id with its suite (`dispatch:grid-1000-mid`). One config
+for every point: the reference PPO settings (15 epochs, one
 minibatch) with `--envs` environments × `--rollout` steps per update. Each point is one fresh
 process: it compiles a chunk of `--updates` updates, times `--repeats` further chunks (training
 steps/s, all of one seed's env steps over wall time; the point's figure is their median) and
@@ -50,7 +51,11 @@ LINES = {
     "cmat m=4": ("cmat", ["network.consensus_iterations=4"]),
     "mat": ("mat", []),
     "mappo": ("mappo", []),
+    "env only": ("env", []),
 }
+"""Lines: name -> (algorithm, config overrides). `env only` steps the environment alone with
+uniformly random legal actions in one compiled scan over the same envs x rollout: the
+environment's own share of a training step."""
 
 Points = dict[str, dict[str, Any] | str]
 """One line's points by team: the measured point, or the error it failed with."""
@@ -61,8 +66,42 @@ import jax
 from cmat.resolve import load_config
 from cmat.runners.trainer import JaxTrainer
 env, algo, envs, rollout, updates, repeats, *extra = sys.argv[1:]
-config = load_config(overrides=[f"env=smax:{env}", f"algo={algo}", f"num_envs={envs}",
-                                f"rollout_length={rollout}", f"log_interval={updates}", *extra])
+env_id = env if ":" in env else f"smax:{env}"
+config = load_config(overrides=[f"env={env_id}", f"algo={'mappo' if algo == 'env' else algo}",
+                                f"num_envs={envs}", f"rollout_length={rollout}",
+                                f"log_interval={updates}", *extra])
+if algo == "env":
+    import jax.numpy as jnp
+    from cmat.envs import make_env
+    marl = make_env(env_id, **config.env_kwargs)
+
+    def steps(key):
+        state, timestep = jax.vmap(marl.reset)(jax.random.split(key, int(envs)))
+        def one(carry, key):
+            state, timestep = carry
+            keys = jax.random.split(key, int(envs))
+            logits = jnp.where(timestep.action_mask, 0.0, -1e9)
+            actions = jax.vmap(lambda k, l: jax.random.categorical(k, l))(keys, logits)
+            state, timestep = jax.vmap(marl.step)(keys, state, actions)
+            return (state, timestep), timestep.reward.sum()
+        return jax.lax.scan(one, (state, timestep),
+                            jax.random.split(key, int(rollout) * int(updates)))[1]
+
+    program = jax.jit(steps)
+    start = time.perf_counter()
+    jax.block_until_ready(program(jax.random.PRNGKey(0)))
+    first = time.perf_counter() - start
+    runs = []
+    for repeat in range(max(1, int(repeats))):
+        start = time.perf_counter()
+        jax.block_until_ready(program(jax.random.PRNGKey(repeat + 1)))
+        runs.append(int(envs) * int(rollout) * int(updates) / (time.perf_counter() - start))
+    print(json.dumps({"n": marl.spec.num_agents, "sps": statistics.median(runs),
+                      "sps_runs": runs, "compile_s": first - statistics.median(
+                          [int(envs) * int(rollout) * int(updates) / r for r in runs]),
+                      "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "device_peak_mb": None}))
+    sys.exit()
 trainer = JaxTrainer(config)
 state = trainer.init()
 if int(repeats) == 0:
@@ -70,8 +109,10 @@ if int(repeats) == 0:
     trainer.compile_chunk(state)
     print(json.dumps(f"compiled in {time.perf_counter() - start:.1f} s"))
     sys.exit()
+start = time.perf_counter()
 state, _ = trainer.train_chunk(state)
 jax.block_until_ready(state.learner.params)
+first = time.perf_counter() - start
 runs = []
 for _ in range(int(repeats)):
     start = time.perf_counter()
@@ -79,8 +120,9 @@ for _ in range(int(repeats)):
     jax.block_until_ready(state.learner.params)
     runs.append(int(updates) * config.steps_per_update / (time.perf_counter() - start))
 device_peaks = [(d.memory_stats() or {}).get("peak_bytes_in_use", 0) for d in jax.local_devices()]
+chunk = int(updates) * config.steps_per_update / statistics.median(runs)
 print(json.dumps({"n": trainer.env_spec.num_agents, "sps": statistics.median(runs),
-                  "sps_runs": runs,
+                  "sps_runs": runs, "compile_s": first - chunk,
                   "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   "device_peak_mb": (max(device_peaks) / 2**20
                                      if jax.default_backend() != "cpu" else None)}))
@@ -88,14 +130,18 @@ print(json.dumps({"n": trainer.env_spec.num_agents, "sps": statistics.median(run
 
 
 def measure(team: str, algo: str, extra: list[str], envs: int, rollout: int,
-            updates: int, repeats: int) -> dict[str, Any] | str:
-    """One point in its own process; the error's last line where it failed (e.g. memory), and
-    with `repeats` 0 the chunk's compile time, as text."""
-    done = subprocess.run(
-        [sys.executable, "-c", POINT, team, algo, str(envs), str(rollout), str(updates),
-         str(repeats), *extra],
-        capture_output=True, text=True, check=False, env={**os.environ},
-    )
+            updates: int, repeats: int, timeout: float | None = None) -> dict[str, Any] | str:
+    """One point in its own process; the error's last line where it failed (e.g. memory) or
+    that it ran past `timeout` seconds, and with `repeats` 0 the chunk's compile time, as
+    text. A point's `compile_s` is its first chunk's time less a timed chunk's."""
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", POINT, team, algo, str(envs), str(rollout), str(updates),
+             str(repeats), *extra],
+            capture_output=True, text=True, check=False, env={**os.environ}, timeout=timeout,
+        )
+    except subprocess.TimeoutExpired:
+        return f"did not finish in {timeout:.0f} s"
     if done.returncode != 0:
         return (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1][:120]
     result: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
@@ -113,6 +159,8 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=1,
                         help="timed chunks per point (median reported; >= 2 for intervals)")
+    parser.add_argument("--point-timeout", type=float, metavar="SECONDS",
+                        help="give up a point after this long (it is reported as such)")
     parser.add_argument("--compile-only", action="store_true",
                         help="compile each point's training chunk and stop (with "
                              "JAX_COMPILATION_CACHE_DIR set, later runs load it)")
@@ -137,7 +185,7 @@ def main() -> None:
         for line in args.lines:
             algo, extra = LINES[line]
             point = measure(team, algo, extra, args.envs, args.rollout, args.updates,
-                            0 if args.compile_only else args.repeats)
+                            0 if args.compile_only else args.repeats, args.point_timeout)
             if args.compile_only:
                 print(f"{team:12} {line:10} {point}", flush=True)
                 continue
@@ -214,9 +262,11 @@ def write(results: dict[str, Points], args: argparse.Namespace) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    header = (f"SMAX teams, {args.envs} envs × {args.rollout} steps per update, reference PPO "
-              f"settings, one seed; training steps/s / peak MB (accelerator memory where the "
-              f"point ran on one, else the process's resident memory)")
+    header = (f"Teams (SMAX `Nm` or an env id), {args.envs} envs × {args.rollout} steps per "
+              f"update, reference PPO settings, one seed; training steps/s / peak MB "
+              f"(accelerator memory where the point ran on one, else the process's resident "
+              f"memory) / compile s (the first chunk less a timed one); `env only`: the "
+              f"environment stepped with random legal actions")
     lines = [line for line in LINES if line in results]
     def agents(team: str) -> float:
         sizes = [p["n"] for line in lines if isinstance(p := results[line].get(team), dict)]
@@ -228,8 +278,9 @@ def write(results: dict[str, Points], args: argparse.Namespace) -> None:
     for team in teams:
         points = [results[line].get(team, "not run") for line in lines]
         ns = [p["n"] for p in points if not isinstance(p, str)]
-        cells = [p if isinstance(p, str) else f"{p['sps']:.0f} / {memory_mb(p):.0f}"
-                 for p in points]
+        cells = [p if isinstance(p, str) else
+                 f"{p['sps']:.0f} / {memory_mb(p):.0f}"
+                 + (f" / {p['compile_s']:.0f}" if "compile_s" in p else "") for p in points]
         rows.append(f"| {team} | {ns[0]:.0f} | " if ns else f"| {team} | ? | ")
         runs = sorted({str(p.get("run", "?")) for p in points if isinstance(p, dict)})
         rows[-1] += " | ".join(cells) + f" | {', '.join(runs)} |"
