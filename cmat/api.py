@@ -176,7 +176,7 @@ def train(
         resumed = run_dir.config()
         if steps is not None:
             resumed = validate(dataclasses.replace(resumed, total_steps=steps))
-        if not resume_is_complete(resumed, run_dir, run_dir.load_checkpoint()[1]):
+        if not resume_is_complete(resumed, run_dir, run_dir.recorded_steps()):
             train_into(build_trainer(resumed), run_dir, resume=True)
         return Run(run_dir.path)
     flags = {"env": env, "algo": algo, "total_steps": steps, "seeds": seeds, "preset": preset}
@@ -369,7 +369,7 @@ def train_into(
 def build_trainer(config: TrainConfig) -> Trainer:
     """The trainer for `config` (`HostTrainer` for host environments, `JaxTrainer` for the
     others); JAX is imported here, after the log level is set."""
-    from cmat.runners.host import build_trainer as build
+    from cmat.runners import build_trainer as build
 
     return build(config)
 

@@ -20,6 +20,7 @@ from typing import NoReturn
 
 from cmat.algorithms import algorithm_class, algorithm_names
 from cmat.api import (
+    budget_note,
     build_trainer,
     default_out,
     evaluate_run,
@@ -323,7 +324,7 @@ def train_command(args: argparse.Namespace) -> None:
             print(to_yaml(config, run_dir.resumed_sources(config)), end="")
             print(f"# {describe_env(config)}")
             return
-        if resume_is_complete(config, run_dir, run_dir.load_checkpoint()[1]):
+        if resume_is_complete(config, run_dir, run_dir.recorded_steps()):
             return
         train_into(build_trainer(config), run_dir, resume=True)
         return
@@ -335,6 +336,7 @@ def train_command(args: argparse.Namespace) -> None:
         description = describe_env(config)
         print(to_yaml(config, sources), end="")
         print(f"# {description}")
+        print(f"# {budget_note(config, sources['total_steps'])}")
         return
     start_run(config, sources, args.out)
 

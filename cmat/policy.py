@@ -208,8 +208,8 @@ def load_policy(
     Raises CmatError for a `run_dir` that is not a path or holds no run or checkpoint, a corrupt
     checkpoint, a seed that is not an int or that the run did not train, or a run whose files
     this version of cmat cannot read."""
+    from cmat.runners import build_trainer
     from cmat.runners.base import restore_run
-    from cmat.runners.host import build_trainer
 
     if not isinstance(run_dir, (str, os.PathLike)):
         raise CmatError(f"run_dir must be a path, got {type(run_dir).__name__}")

@@ -303,6 +303,13 @@ class RunDir:
             return None
         return header if isinstance(header, dict) else None
 
+    def recorded_steps(self, which: Checkpoint = "latest") -> int:
+        """The env steps checkpoint `which`'s header records, without reading or checking its
+        bytes (`load_checkpoint` does, and raises its errors where the header is unreadable)."""
+        header = self.checkpoint_header(which) or {}
+        steps = header.get("env_steps")
+        return steps if isinstance(steps, int) else self.load_checkpoint(which)[1]
+
     def checkpoint_network(self, which: Checkpoint = "latest") -> dict[str, Any] | None:
         """The network config checkpoint `which`'s header records (None: a checkpoint from
         before headers recorded it, or none)."""

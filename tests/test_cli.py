@@ -20,7 +20,6 @@ import pytest
 import yaml
 from test_rundir import lock_held_elsewhere
 
-from cmat import cli
 from cmat.cli import main
 from cmat.config import load_yaml, validate
 from cmat.resolve import load_config
@@ -508,9 +507,13 @@ def test_train_says_what_budget_it_starts_and_where_it_comes_from(
     argv: list[str], note: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    monkeypatch.setattr(cli, "train_into", lambda *args, **kwargs: None)
+    from cmat import api
+
+    monkeypatch.setattr(api, "train_into", lambda *args, **kwargs: None)
     assert main(["train", "--env", "matrix:fig1", *argv, "--out", str(tmp_path / "run")]) == 0
     assert capsys.readouterr().out.splitlines()[0] == note
+    assert main(["train", "--env", "matrix:fig1", *argv, "--dry-run"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == f"# {note}"  # before anything compiles
 
 
 @pytest.mark.parametrize(("field", "value"), [("n_head", 2)])

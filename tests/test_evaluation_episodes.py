@@ -18,7 +18,7 @@ from cmat.experiments.markdown import old_protocol_text
 from cmat.experiments.plan import Run
 from cmat.experiments.report import eval_protocol
 from cmat.rundir import EVAL_PROTOCOL, RunDir
-from cmat.runners.host import build_trainer
+from cmat.runners import build_trainer
 
 METRICS = ("episode_return", "service_rate", "revenue", "expired", "conflicts_per_step")
 

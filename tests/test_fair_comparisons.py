@@ -36,8 +36,9 @@ from cmat.envs.protocol import EnvSpec
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners import trainer as trainer_lib
-from cmat.runners.learner import ROLLOUT_FAULTS, Transition, fault_code, make_batch
+from cmat.runners.learner import ROLLOUT_FAULTS, fault_code, make_batch
 from cmat.runners.trainer import JaxTrainer, build_setup, init_state
+from cmat.runners.types import Transition
 
 pytestmark = pytest.mark.quick_compiles
 

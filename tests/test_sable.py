@@ -31,7 +31,8 @@ from cmat.networks.sable import SableNetwork
 from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.host import HostTrainer
-from cmat.runners.learner import Rollout, make_batch
+from cmat.runners.learner import make_batch
+from cmat.runners.types import Rollout
 
 
 def retention_recurrent(

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from cmat.algorithms.base import Algorithm, Params, initial_memories
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
-from cmat.runners.learner import Rollout, Transition
+from cmat.runners.types import Rollout, Transition
 
 
 @flax.struct.dataclass

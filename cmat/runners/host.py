@@ -32,7 +32,6 @@ from cmat.envs.host.pool import COUNTERS, InProcessPool, WorkerPool, make_pool
 from cmat.envs.host.protocol import HostBatch
 from cmat.runners.base import (
     EVAL_SEED_OFFSET,
-    Trainer,
     TrainerState,
     restore_state,
     seed_keys,
@@ -46,13 +45,12 @@ from cmat.runners.evaluation import split_evenly, tally_result, tally_start, tal
 from cmat.runners.learner import (
     LearnerSetup,
     LearnerState,
-    Rollout,
-    Transition,
     build_learner,
     init_learner,
     learn,
     summarise_updates,
 )
+from cmat.runners.types import Rollout, Transition
 
 
 def host_learner(
@@ -316,11 +314,3 @@ class HostTrainer:
         state = restore_state(template, None, self.config.seeds, data)
         self._timestep = None
         return state
-
-
-def build_trainer(config: TrainConfig) -> Trainer:
-    """`HostTrainer` for host environment ids, `JaxTrainer` for in-graph ones."""
-    from cmat.envs.host import is_host_env
-    from cmat.runners.trainer import JaxTrainer
-
-    return HostTrainer(config) if is_host_env(config.env) else JaxTrainer(config)

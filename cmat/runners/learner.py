@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, NamedTuple
+from typing import Any
 
 import flax.struct
 import jax
@@ -25,6 +25,7 @@ from cmat.algorithms.base import Algorithm, Batch, Params
 from cmat.algorithms.sgd import finetune_optimizer
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
+from cmat.runners.types import Rollout, Transition
 
 
 @flax.struct.dataclass
@@ -37,43 +38,6 @@ class LearnerState:
     value_norm: ppo_lib.ValueNormState
     rng: jax.Array
     update_step: jax.Array
-
-
-class Transition(NamedTuple):
-    """One step of every environment, stacked to [T, envs, ...] by a collector."""
-
-    obs: jax.Array
-    action_mask: jax.Array
-    actions: jax.Array
-    log_probs: jax.Array
-    value: jax.Array
-    reward: jax.Array
-    done: jax.Array
-    won: jax.Array
-    finished_return: jax.Array
-    """Return of the episode this step ended (0 where it ended none)."""
-    alive: jax.Array
-    """[n] agents active in `obs`."""
-    global_state: jax.Array
-    """[state_dim] the environment's global state at `obs`."""
-    extras: Any
-    start: jax.Array
-    """[] `obs` begins an episode (the step before ended one; False after the first reset,
-    where a recurrent algorithm's state is empty anyway)."""
-
-
-class Rollout(NamedTuple):
-    """What a collector hands the learner: T steps of every environment and what the
-    environments showed after the last one (to bootstrap the returns)."""
-
-    steps: Transition
-    """[T, envs, ...]."""
-    next_obs: jax.Array
-    """[envs, n, obs_dim]."""
-    next_global_state: jax.Array
-    """[envs, state_dim]."""
-    memory: Any = ()
-    """[envs, ...] a recurrent algorithm's state before the first step (() otherwise)."""
 
 
 @dataclass(frozen=True)

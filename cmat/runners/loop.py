@@ -95,7 +95,7 @@ def train_locked(
                 if interrupted():
                     raise KeyboardInterrupt
     except KeyboardInterrupt:
-        run_dir.truncate_metrics(run_dir.load_checkpoint()[1])
+        run_dir.truncate_metrics(run_dir.recorded_steps())
         raise
     absolute = best.absolute(state)
     absolute["env_steps"] = np.full(config.seeds, config.budget_steps)
