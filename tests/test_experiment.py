@@ -942,3 +942,15 @@ def test_bands_stay_in_the_metric_range() -> None:
     assert (low, high) == (0.0, 1.0)
     band(axes, steps, mean, std, "episode_return")
     assert axes.collections[1].get_paths()[0].vertices[:, 1].min() == pytest.approx(-0.15)
+
+
+def test_sable_lines_are_named_as_their_authors_name_them() -> None:
+    """"Sable" is the Sable paper's recurrent Sable; the feed-forward one says so."""
+    spec = load_spec("sable_comparison")
+    plan = make_plan(spec, Path("unused"))
+    labels = {(run.variant.name, run.algo):
+              run.variant.line_label(run.algo, run.config.network.recurrent)
+              for run in plan.runs if run.config is not None}
+    assert labels[("default", "sable")] == "Sable (feed-forward)"
+    assert labels[("recurrent", "sable")] == "Sable"
+    assert labels[("default", "cmat")] == "CMAT"

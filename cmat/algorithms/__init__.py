@@ -45,6 +45,15 @@ ALGORITHM_LABELS = {
 }
 """Each algorithm's name in tables, figures and claims (the papers' spelling)."""
 
+
+def algorithm_label(algo: str, recurrent: bool | None = None) -> str:
+    """The name of `algo`'s line, as its authors name it: `Sable` is the Sable paper's
+    recurrent Sable; with `network.recurrent` false (`recurrent` False) it is
+    `Sable (feed-forward)`, Mava's `ff_sable`. Every other algorithm: `ALGORITHM_LABELS`."""
+    if algo == "sable" and recurrent is False:
+        return "Sable (feed-forward)"
+    return ALGORITHM_LABELS[algo]
+
 OPTION_CAPABILITIES = {
     "network.consensus_policy": ("consensus", "deterministic"),
     "ppo.joint_clip": ("joint_ratio", "joint"),

@@ -17,7 +17,7 @@ from typing import Any
 
 import yaml
 
-from cmat.algorithms import ALGORITHM_LABELS, algorithm_names, finetune_stage_error
+from cmat.algorithms import algorithm_label, algorithm_names, finetune_stage_error
 from cmat.config import FINETUNE_MODES, load_yaml
 from cmat.errors import CmatError, read_text
 
@@ -61,12 +61,13 @@ class Variant:
     def covers(self, env_id: str) -> bool:
         return self.envs is None or env_id in self.envs
 
-    def line_label(self, algo: str) -> str:
-        """The legend entry of this variant's `algo` runs."""
+    def line_label(self, algo: str, recurrent: bool | None = None) -> str:
+        """The legend entry of this variant's `algo` runs (`algorithm_label`; `recurrent`: their
+        `network.recurrent`, which names a Sable line)."""
+        name = algorithm_label(algo, recurrent)
         if self.label is None:
-            name = ALGORITHM_LABELS[algo]
             return name if self.name == "default" else f"{name} ({self.name})"
-        return self.label if len(self.algos) == 1 else f"{ALGORITHM_LABELS[algo]} {self.label}"
+        return self.label if len(self.algos) == 1 else f"{name} {self.label}"
 
 
 @dataclass(frozen=True)
