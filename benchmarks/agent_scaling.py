@@ -49,6 +49,8 @@ from machine import describe
 LINES = {
     "cmat": ("cmat", []),
     "cmat m=4": ("cmat", ["network.consensus_iterations=4"]),
+    "cmat m=4 blocks": ("cmat", ["network.consensus_iterations=4",
+                                 "network.attention_block=128"]),
     "mat": ("mat", []),
     "mappo": ("mappo", []),
     "env only": ("env", []),

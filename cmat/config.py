@@ -92,6 +92,13 @@ class NetworkConfig:
     """Sable with `recurrent`: timesteps per chunk of the chunkwise training pass (memory
     O(chunk²) instead of O(rollout_length²); a pass's last chunk is shorter where the chunk does
     not divide its steps); None: the whole rollout in one parallel pass (Mava's default)."""
+    attention_block: int = 0
+    """CMAT, MAT, PMAT, Triple-BERT: the encoder's self-attention over agents in blocks of this
+    many agents (queries), one block at a time and recomputed in the backward pass, so its
+    memory grows linearly in the number of agents at a fixed batch instead of quadratically;
+    0 attends with all agents at once. The same result up to floating-point order, and the
+    same parameters: a run may change it when resumed. Other attentions (compressors,
+    decoder cross-attention) already scale linearly in n at a fixed m."""
     log_std_init: float = 1.0
     """Initial learned log-std of continuous heads; std = sigmoid(log_std) · 0.5, so 1 starts
     at std ≈ 0.37 (the reference MAT Decoder's `torch.ones(action_dim)`)."""
@@ -399,6 +406,7 @@ NUMERIC_RANGES: dict[str, tuple[float | None, float | None, bool]] = {
     "ppo.order_loss_coef": (0.0, None, True),
     "network.init_gain": (0.0, None, False),
     "network.latent_head_gain": (0.0, None, False),
+    "network.attention_block": (0, None, True),
 }
 """Allowed range of numeric fields not checked above: (low, high, low included); None is
 unbounded. Every float field must also be finite."""

@@ -572,7 +572,14 @@ def network_record(config: TrainConfig) -> dict[str, Any]:
     """`config.network` as a checkpoint header records it (JSON values): the network its
     parameters belong to (`RunDir.save_checkpoint`, `cmat.runners.base.restore_run`)."""
     record: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(config.network)))
+    for name in EXECUTION_FIELDS:
+        record.pop(name, None)
     return record
+
+
+EXECUTION_FIELDS = ("attention_block",)
+"""Network fields that change how the network computes, not what: not recorded, so that a run
+may change them."""
 
 
 EVAL_PROTOCOL = 2

@@ -55,7 +55,7 @@ CHANGED_NETWORK_FIELDS = {
     "n_embd": 32, "n_head": 2, "n_block": 2, "compressor_heads": 2, "consensus_iterations": 1,
     "consensus_source": "last", "consensus_policy": "categorical", "consensus_codes": 4,
     "latent_head_gain": 0.5, "init_gain": 0.5, "log_std_init": 0.0, "recurrent": True,
-    "retention_decay": 0.5, "retention_chunk": 1, "mlp_layers": 3,
+    "retention_decay": 0.5, "retention_chunk": 1, "mlp_layers": 3, "attention_block": 1,
 }
 
 

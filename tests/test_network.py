@@ -187,3 +187,42 @@ def test_a_scanned_decoder_keeps_order_independence() -> None:
     np.testing.assert_allclose(permuted.consensus, original.consensus, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(permuted.action_params, original.action_params[:, permutation],
                                rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize(("agents", "block"), [(7, 3), (8, 4), (5, 1)])
+def test_blockwise_attention_is_full_attention_in_value_and_gradient(
+    agents: int, block: int
+) -> None:
+    """`attention_block` changes the memory of the encoder, not its function: outputs and
+    gradients equal full attention's (whole and partial blocks), and permuting the agents
+    permutes the outputs."""
+    from cmat.networks.layers import ObservationEncoder
+
+    obs = jax.random.normal(jax.random.PRNGKey(0), (3, agents, 6))
+    full, blocked = (ObservationEncoder(16, 2, 2, query_block=b) for b in (0, block))
+    params = full.init(jax.random.PRNGKey(1), obs)
+
+    def loss(p: object, module: ObservationEncoder) -> jax.Array:
+        return jnp.sum(module.apply(p, obs) ** 2)
+
+    np.testing.assert_allclose(blocked.apply(params, obs), full.apply(params, obs),
+                               rtol=1e-5, atol=1e-5)
+    for got, want in zip(jax.tree.leaves(jax.grad(loss)(params, blocked)),
+                         jax.tree.leaves(jax.grad(loss)(params, full)), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    order = jax.random.permutation(jax.random.PRNGKey(2), agents)
+    np.testing.assert_allclose(blocked.apply(params, obs[:, order]),
+                               blocked.apply(params, obs)[:, order], rtol=1e-5, atol=1e-5)
+
+
+def test_blockwise_attention_masks_keys_as_full_attention_does() -> None:
+    from cmat.networks.layers import blockwise_attention
+
+    keys = jax.random.normal(jax.random.PRNGKey(0), (2, 9, 4))
+    values = jax.random.normal(jax.random.PRNGKey(1), (2, 9, 4))
+    queries = jax.random.normal(jax.random.PRNGKey(2), (2, 5, 4))
+    visible = jnp.arange(9) % 3 != 0
+    logits = jnp.where(visible, jnp.einsum("hqd,hkd->hqk", queries, keys), -jnp.inf)
+    want = jnp.einsum("hqk,hkd->hqd", jax.nn.softmax(logits, axis=-1), values)
+    np.testing.assert_allclose(blockwise_attention(queries, keys, values, 2, visible), want,
+                               rtol=1e-5, atol=1e-6)

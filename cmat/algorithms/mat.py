@@ -48,8 +48,8 @@ class MAT(PPOAlgorithm):
     name: ClassVar[str] = "mat"
     capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values", "minibatch_chunks"})
     network_fields: ClassVar[tuple[str, ...]] = (
-        "n_embd", "n_head", "n_block", "init_gain", "log_std_init")
-    """The encoder-decoder's sizes (MATNetwork)."""
+        "n_embd", "n_head", "n_block", "init_gain", "log_std_init", "attention_block")
+    """The encoder-decoder's sizes (MATNetwork) and how its encoder attends."""
 
     ynnpack_matmuls: ClassVar[bool] = True
     presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}

@@ -29,8 +29,10 @@ class TripleBERT(CMAT):
     finetune_stages: ClassVar[tuple[str, ...]] = ()
     capabilities: ClassVar[frozenset[str]] = frozenset({"joint_ratio", "minibatch_chunks"})
     network_fields: ClassVar[tuple[str, ...]] = (
-        "n_embd", "n_head", "n_block", "compressor_heads", "init_gain", "log_std_init")
-    """CMAT's sizes without its decoder and consensus (TripleBERTNetwork)."""
+        "n_embd", "n_head", "n_block", "compressor_heads", "init_gain", "log_std_init",
+        "attention_block")
+    """CMAT's sizes without its decoder and consensus (TripleBERTNetwork), and how its encoder
+    attends."""
     output_axes: ClassVar[Any] = TripleBERTOutput._make((0, None, 0))
     ynnpack_matmuls: ClassVar[bool] = False
     """Measured no faster with them (1.00 on SMAX 2s3z; docs/speed.md)."""

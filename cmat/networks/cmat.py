@@ -182,7 +182,8 @@ class CMATNetwork(nn.Module):
     def setup(self) -> None:
         cfg = self.config
         gain = cfg.init_gain
-        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain)
+        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain,
+                                          cfg.attention_block)
         self.critic_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd, gain)
         self.critic_mlp = ValueHead(cfg.n_embd, gain)
         self.decoder = ConsensusDecoder(

@@ -86,22 +86,59 @@ class MultiHeadAttention(nn.Module):
 
     def attend(
         self, x: jax.Array, keys: jax.Array, values: jax.Array, causal: bool = False,
-        visible: jax.Array | None = None,
+        visible: jax.Array | None = None, query_block: int = 0,
     ) -> jax.Array:
         """Query positions of `x` attend to the given keys: all of them, with `causal`
-        position k to keys 0..k only, with `visible` [keys] (bool) the visible keys only."""
+        position k to keys 0..k only, with `visible` [keys] (bool) the visible keys only.
+        With `query_block` > 0 (not with `causal`) and more queries than that, the queries go
+        in blocks of that many (`blockwise_attention`): the same result, in memory linear in
+        the number of queries at a fixed number of keys."""
         queries = self.split_heads(self.query(x)) / np.sqrt(self.n_embd // self.n_head)
-        logits = jnp.einsum("...qd,...kd->...qk", queries, keys)
-        if visible is not None:
-            logits = jnp.where(visible, logits, jnp.finfo(logits.dtype).min)
-        if causal:
-            mask = jnp.tril(jnp.ones((x.shape[-2], keys.shape[-2]), dtype=bool))
-            logits = jnp.where(mask, logits, jnp.finfo(logits.dtype).min)
-        heads = jnp.einsum("...qk,...kd->...qd", jax.nn.softmax(logits, axis=-1), values)
+        if 0 < query_block < x.shape[-2] and not causal:
+            heads = blockwise_attention(queries, keys, values, query_block, visible)
+        else:
+            logits = jnp.einsum("...qd,...kd->...qk", queries, keys)
+            if visible is not None:
+                logits = jnp.where(visible, logits, jnp.finfo(logits.dtype).min)
+            if causal:
+                mask = jnp.tril(jnp.ones((x.shape[-2], keys.shape[-2]), dtype=bool))
+                logits = jnp.where(mask, logits, jnp.finfo(logits.dtype).min)
+            heads = jnp.einsum("...qk,...kd->...qd", jax.nn.softmax(logits, axis=-1), values)
         return self.out(jnp.moveaxis(heads, -3, -2).reshape(*x.shape[:-1], self.n_embd))
 
-    def __call__(self, x: jax.Array, memory: jax.Array, causal: bool = False) -> jax.Array:
-        return self.attend(x, *self.project_memory(memory), causal=causal)
+    def __call__(
+        self, x: jax.Array, memory: jax.Array, causal: bool = False, query_block: int = 0
+    ) -> jax.Array:
+        return self.attend(x, *self.project_memory(memory), causal=causal,
+                           query_block=query_block)
+
+
+def blockwise_attention(
+    queries: jax.Array, keys: jax.Array, values: jax.Array, block: int,
+    visible: jax.Array | None = None,
+) -> jax.Array:
+    """softmax(q kᵀ) v for queries [..., Lq, d] in blocks of `block` queries, one block at a
+    time (`lax.map`), each block's scores recomputed in the backward pass (`jax.checkpoint`):
+    the scores held at once are [..., block, Lk] instead of [..., Lq, Lk], in the forward and
+    the backward pass. Each query's softmax is over all keys, as in full attention, so the
+    result is the same up to floating-point order (and stays equivariant in the queries);
+    `visible` [Lk] masks keys. Queries are padded to whole blocks and the padding dropped."""
+    length = queries.shape[-2]
+    blocks = -(-length // block)
+    padded = jnp.pad(queries, [(0, 0)] * (queries.ndim - 2) + [(0, blocks * block - length),
+                                                                (0, 0)])
+    stacked = jnp.moveaxis(padded.reshape(*padded.shape[:-2], blocks, block,
+                                          padded.shape[-1]), -3, 0)
+
+    @jax.checkpoint
+    def one(query_block: jax.Array) -> jax.Array:
+        logits = jnp.einsum("...qd,...kd->...qk", query_block, keys)
+        if visible is not None:
+            logits = jnp.where(visible, logits, jnp.finfo(logits.dtype).min)
+        return jnp.einsum("...qk,...kd->...qd", jax.nn.softmax(logits, axis=-1), values)
+
+    out = jnp.moveaxis(jax.lax.map(one, stacked), 0, -3)
+    return out.reshape(*out.shape[:-3], blocks * block, out.shape[-1])[..., :length, :]
 
 
 class FeedForward(nn.Module):
@@ -121,10 +158,13 @@ class EncoderBlock(nn.Module):
     n_embd: int
     n_head: int
     gain: float = SMALL_GAIN
+    query_block: int = 0
+    """`NetworkConfig.attention_block`: agents per block of the self-attention (0: all)."""
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        x = nn.LayerNorm()(x + MultiHeadAttention(self.n_embd, self.n_head, self.gain)(x, x))
+        attention = MultiHeadAttention(self.n_embd, self.n_head, self.gain)
+        x = nn.LayerNorm()(x + attention(x, x, query_block=self.query_block))
         out: jax.Array = nn.LayerNorm()(x + FeedForward(self.n_embd, self.gain)(x))
         return out
 
@@ -136,13 +176,15 @@ class ObservationEncoder(nn.Module):
     n_head: int
     n_block: int
     gain: float = SMALL_GAIN
+    query_block: int = 0
+    """`NetworkConfig.attention_block`: agents per block of each self-attention (0: all)."""
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
         x = nn.gelu(dense(self.n_embd)(nn.LayerNorm()(obs)))
         x = nn.LayerNorm()(x)
         for _ in range(self.n_block):
-            x = EncoderBlock(self.n_embd, self.n_head, self.gain)(x)
+            x = EncoderBlock(self.n_embd, self.n_head, self.gain, self.query_block)(x)
         return x
 
 

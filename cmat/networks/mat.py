@@ -150,7 +150,8 @@ class MATNetwork(nn.Module):
     def setup(self) -> None:
         cfg = self.config
         gain = cfg.init_gain
-        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain)
+        self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain,
+                                          cfg.attention_block)
         self.value_head = AgentValueHead(cfg.n_embd, gain)
         self.action_embedding = dense(cfg.n_embd, use_bias=not self.discrete)
         self.token_norm = nn.LayerNorm()
