@@ -26,6 +26,7 @@ from cmat.api import (
     evaluate_run,
     json_number,
     start_run,
+    train,
     train_into,
 )
 from cmat.config import (
@@ -43,7 +44,6 @@ from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import explain, resolve_config
 from cmat.rundir import RunDir, parse_checkpoint
-from cmat.runners.loop import resume_is_complete
 from cmat.version import __version__
 
 
@@ -316,17 +316,15 @@ def train_command(args: argparse.Namespace) -> None:
         if any(value is not None for value in (args.env, args.algo, args.seeds, args.config,
                                                 args.out, args.preset)) or args.set:
             raise CmatError("--resume takes no other option than --steps")
-        run_dir = RunDir.open(args.resume)
-        config = run_dir.config()
-        if args.steps is not None:
-            config = validate(dataclasses.replace(config, total_steps=args.steps))
         if args.dry_run:
+            run_dir = RunDir.open(args.resume)
+            config = run_dir.config()
+            if args.steps is not None:
+                config = validate(dataclasses.replace(config, total_steps=args.steps))
             print(to_yaml(config, run_dir.resumed_sources(config)), end="")
             print(f"# {describe_env(config)}")
             return
-        if resume_is_complete(config, run_dir, run_dir.recorded_steps()):
-            return
-        train_into(build_trainer(config), run_dir, resume=True)
+        train(resume=args.resume, steps=args.steps)
         return
     flags = {"env": args.env, "algo": args.algo, "total_steps": args.steps, "seeds": args.seeds,
              "preset": args.preset}
