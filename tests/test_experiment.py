@@ -164,6 +164,9 @@ def test_grid_writes_figures_table_and_statistics(grid: tuple[Path, bytes, str])
 
         with Image.open(png) as image:  # the text width of a two-column paper, for print
             assert image.size[0] == 7 * 200 and round(image.info["dpi"][0]) == 200
+    # the grid's progress: MAT resumed at 500 of 1,000 steps × 2 seeds, then the stage's 1,000
+    assert "1/2 runs ended, 67% of 3,000 env steps" in stdout
+    assert "2/2 runs ended, 100% of 3,000 env steps" in stdout
     table = (out / "results.md").read_text()
     assert "| task | metric | steps | CMAT | MAT | CMAT-finetune (action) |" in table
     assert "| Fig. 1 matrix game | episode return | 1,000 | " in table

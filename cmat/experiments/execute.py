@@ -170,13 +170,12 @@ class GridProgress:
 
     @staticmethod
     def steps(run: Run) -> int:
-        """Env steps of every seed in `run`'s latest checkpoint (0 before its first)."""
-        if run.config is None or not (run.path / "checkpoints").is_dir():
+        """Env steps of every seed in `run`'s latest checkpoint, read from its header alone
+        (this is polled while runs train; 0 before the first)."""
+        steps = (RunDir(run.path).checkpoint_header() or {}).get("env_steps")
+        if run.config is None or not isinstance(steps, int):
             return 0
-        try:
-            return RunDir(run.path).checkpoint_steps()[0] * run.config.seeds
-        except (CmatError, OSError, ValueError):
-            return 0
+        return steps * run.config.seeds
 
     def done_steps(self) -> int:
         return sum(self.budget(run) if run.outcome == "ok" else self.steps(run)
