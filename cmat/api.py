@@ -33,6 +33,7 @@ from cmat.config import INT32_MAX, ConfigSources, TrainConfig, resolve_iteration
 from cmat.errors import CmatError
 from cmat.resolve import resolve_config
 from cmat.rundir import Checkpoint, RunDir
+from cmat.runners import distributed
 from cmat.runners.loop import resume_is_complete, run_training
 
 if TYPE_CHECKING:
@@ -177,7 +178,11 @@ def train(
         if steps is not None:
             resumed = validate(dataclasses.replace(resumed, total_steps=steps))
         if not resume_is_complete(resumed, run_dir, run_dir.recorded_steps()):
-            train_into(build_trainer(resumed), run_dir, resume=True)
+            trainer = distributed_trainer(resumed)
+            if distributed.is_follower():
+                distributed.follow(trainer, run_dir.sources(), run_dir.path, resume=True)
+            else:
+                train_into(trainer, run_dir, resume=True)
         return Run(run_dir.path)
     flags = {"env": env, "algo": algo, "total_steps": steps, "seeds": seeds, "preset": preset}
     values = {**{key: value for key, value in flags.items() if value is not None}, **settings}
@@ -189,7 +194,15 @@ def train(
 def start_run(config: TrainConfig, sources: ConfigSources, out: Path | None) -> Run:
     """Build the trainer of `config`, create the run directory (`out`, or a new one under
     runs/) once its environment has reset, and train it to its budget."""
-    trainer = build_trainer(config)
+    trainer = distributed_trainer(config)
+    if distributed.active():
+        if out is None:
+            raise CmatError("a run of several processes needs --out DIR (out=): the directory "
+                            "process 0 writes, named the same in every process")
+        if distributed.is_follower():
+            print(f"cmat: {distributed.describe()}: process 0 writes the run {out}", flush=True)
+            distributed.follow(trainer, sources, Path(out), resume=False)
+            return Run(Path(out))
     if out is not None:
         out = RunDir.check_free(out).path
     print(budget_note(config, sources["total_steps"]), flush=True)
@@ -343,7 +356,8 @@ def train_into(
     leaves no directory behind: this process made it and it holds nothing but the config and
     the initial checkpoint."""
     try:
-        run_training(trainer, run_dir, resume=resume, start=start)
+        with distributed.peer_failures(run_dir.path):
+            run_training(trainer, run_dir, resume=resume, start=start)
     except (CmatError, OSError) as error:
         message = (f"cannot write {error.filename}: {error.strerror}"
                    if isinstance(error, OSError) and error.filename else str(error))
@@ -372,6 +386,17 @@ def build_trainer(config: TrainConfig) -> Trainer:
     from cmat.runners import build_trainer as build
 
     return build(config)
+
+
+def distributed_trainer(config: TrainConfig) -> Trainer:
+    """`build_trainer`; CmatError where this process is one of several
+    (cmat.runners.distributed) and `config`'s environment runs on the host."""
+    from cmat.envs.host import is_host_env
+
+    if distributed.active() and is_host_env(config.env):
+        raise CmatError(f"a run of several processes needs an in-graph environment; "
+                        f"{config.env} runs on the host")
+    return build_trainer(config)
 
 
 def default_out(config: TrainConfig) -> Path:

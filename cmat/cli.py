@@ -44,6 +44,7 @@ from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import explain, resolve_config
 from cmat.rundir import RunDir, parse_checkpoint
+from cmat.runners import distributed
 from cmat.version import __version__
 
 
@@ -104,6 +105,15 @@ def build_parser() -> argparse.ArgumentParser:
                        help="print the resolved config, each value with its source (default, "
                             "suite, algorithm, preset, file, command line), and the "
                             "environment's agents and actions; train nothing")
+    cluster = train.add_argument_group(
+        "one run across several processes (docs/distributed.md)")
+    cluster.add_argument("--coordinator", metavar="HOST:PORT|auto",
+                         help="join a run of several processes whose process 0 listens at "
+                              "HOST:PORT; 'auto' where JAX finds the cluster (SLURM, Open MPI)")
+    cluster.add_argument("--processes", type=int, metavar="N",
+                         help="the run's number of processes (with --coordinator HOST:PORT)")
+    cluster.add_argument("--process-id", type=int, metavar="I",
+                         help="this process's number, 0 to N-1; process 0 writes the run")
     train.set_defaults(handler=train_command)
 
     evaluate = commands.add_parser(
@@ -248,6 +258,12 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exit:
         return exit.code if isinstance(exit.code, int) else 2
     try:
+        supervised = distributed.SUPERVISED in os.environ
+        if args.command == "train" and cluster_flags(args) and not supervised:
+            process = ("this process" if args.process_id is None
+                       else f"process {args.process_id} of {args.processes}")
+            return distributed.supervise(sys.argv[1:] if argv is None else argv, process,
+                                         args.out or args.resume)
         args.handler(args)
     except CmatError as error:
         return fail(str(error))
@@ -262,6 +278,19 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def cluster_flags(args: argparse.Namespace) -> bool:
+    """Whether `cmat train` joins a run of several processes; CmatError where its cluster
+    flags do not fit together or with --dry-run."""
+    if args.coordinator is None:
+        if args.processes is not None or args.process_id is not None:
+            raise CmatError("--processes and --process-id need --coordinator HOST:PORT")
+        return False
+    if args.dry_run:
+        raise CmatError("--dry-run takes no --coordinator")
+    distributed.check_cluster(args.coordinator, args.processes, args.process_id)
+    return True
+
+
 def run() -> NoReturn:
     """The `cmat` and `python -m cmat` entry point: `main`'s exit code. After an interrupt
     the process ends without Python's finalisation: a Ctrl-C during a compile or a chunk
@@ -269,6 +298,8 @@ def run() -> NoReturn:
     process (a segmentation fault or an abort, where 130 was due). Everything a run keeps is
     already written by then."""
     code = main()
+    if distributed.active():
+        distributed.finish(code)
     if code == 130:
         sys.stdout.flush()
         sys.stderr.flush()
@@ -312,6 +343,9 @@ def config_command(args: argparse.Namespace) -> None:
 
 
 def train_command(args: argparse.Namespace) -> None:
+    if args.coordinator is not None:
+        distributed.quiet_runtime_log()
+        distributed.initialize(args.coordinator, args.processes, args.process_id)
     if args.resume is not None:
         if any(value is not None for value in (args.env, args.algo, args.seeds, args.config,
                                                 args.out, args.preset)) or args.set:

@@ -607,6 +607,7 @@ class Session:
             "backend": jax.default_backend(), "device": device.device_kind,
             "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
             else os.cpu_count(),
+            "processes": jax.process_count(), "devices": len(jax.devices()),
             "from_steps": env_steps, "to_steps": env_steps, "seconds": 0.0,
             "eval_protocol": EVAL_PROTOCOL,
         }

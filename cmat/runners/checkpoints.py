@@ -67,13 +67,13 @@ class BestCheckpoint:
     def update(self, state: TrainerState, evaluation: dict[str, Any], env_steps: int) -> None:
         """Take the seeds of `state` whose evaluation beats their best, and rewrite best.ckpt
         where one does."""
-        import jax
+        from cmat.runners.devices import to_host
 
         scores = np.asarray(evaluation[score_metric(self.trainer)], np.float64)
         improved = np.nan_to_num(scores, nan=-np.inf) > self.scores
         if not improved.any():
             return
-        current = jax.device_get(state.learner)
+        current = to_host(state.learner)
         base = current if improved.all() else self.best_learner(state)
         self.learner = merged(base, current, improved)
         self.scores = np.where(improved, scores, self.scores)
@@ -88,14 +88,14 @@ class BestCheckpoint:
 
     def best_learner(self, state: TrainerState) -> LearnerState:
         """The best learner state: this process's, else best.ckpt's, else `state`'s."""
-        import jax
+        from cmat.runners.devices import to_host
 
         if self.learner is None:
             if "best" in self.run_dir.checkpoints() and np.isfinite(self.scores).any():
                 data, _ = self.run_dir.load_checkpoint("best")
-                self.learner = jax.device_get(self.trainer.from_bytes(data).learner)
+                self.learner = to_host(self.trainer.from_bytes(data).learner)
             else:
-                self.learner = jax.device_get(state.learner)
+                self.learner = to_host(state.learner)
         return self.learner
 
     def absolute(self, state: TrainerState) -> dict[str, np.ndarray]:

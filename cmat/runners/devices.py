@@ -1,6 +1,6 @@
 """Several local devices: a run's seeds, or else its environments, sharded across them.
 
-`JaxTrainer` uses every local device (`jax.local_devices()`; restrict them with
+`JaxTrainer` uses every device (`jax.devices()`: this process's; restrict them with
 `CUDA_VISIBLE_DEVICES` or JAX's platform flags). Its state is placed with a `NamedSharding` over
 a one-axis mesh of those devices: the seed axis (the leading axis of every leaf) when the
 devices divide the number of seeds, else the environment axis of the in-graph environments
@@ -10,6 +10,10 @@ program needs: with the environments sharded, each device steps its share of the
 update's means over the batch (the loss, hence the gradients) are reduced across devices. A run
 on several devices therefore computes what it computes on one, up to floating-point order
 (tests/test_devices.py). Host runs (`HostTrainer`) stay on one device.
+
+In a run of several processes (cmat.runners.distributed) the mesh holds every process's devices
+(`jax.devices()`); each process puts only its own shards (`put`), and reads results back with
+`to_host`, which gathers what is spread over processes.
 
 On CPU the trainers compile their programs with XLA options of their own (`compiler_options`).
 """
@@ -65,8 +69,38 @@ def place(state: TrainerState, devices: list[Any], axis: str | None) -> TrainerS
             learner=jax.tree.map(lambda _: replicated, state.learner),
             envs=jax.tree.map(lambda _: by_env, state.envs),
         )
-    placed: TrainerState = jax.device_put(state, shardings)
+    placed: TrainerState = put(state, shardings)
     return placed
+
+
+def put(tree: Any, shardings: Any) -> Any:
+    """`jax.device_put(tree, shardings)`; where the shardings span several processes, each
+    process makes its own shards from its copy of `tree`, which must hold the same values in
+    every process."""
+    if jax.process_count() == 1:
+        return jax.device_put(tree, shardings)
+
+    def global_array(leaf: Any, sharding: NamedSharding) -> jax.Array:
+        values = np.asarray(leaf)
+        return jax.make_array_from_callback(values.shape, sharding, lambda index: values[index])
+
+    return jax.tree.map(global_array, tree, shardings)
+
+
+def to_host(tree: Any) -> Any:
+    """`tree` with every leaf a NumPy array. Arrays sharded over several processes are
+    gathered from all of them: a collective, so every process of the run calls it at the same
+    point of the same program."""
+    leaves, treedef = jax.tree.flatten(tree)
+    spread = [index for index, leaf in enumerate(leaves)
+              if isinstance(leaf, jax.Array) and not leaf.is_fully_addressable]
+    if spread:
+        from jax.experimental import multihost_utils
+
+        gathered = multihost_utils.process_allgather([leaves[i] for i in spread], tiled=True)
+        for index, value in zip(spread, gathered, strict=True):
+            leaves[index] = value
+    return jax.tree.unflatten(treedef, [np.asarray(leaf) for leaf in leaves])
 
 
 def compiler_options(ynnpack_matmuls: bool = False) -> dict[str, str]:

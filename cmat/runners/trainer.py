@@ -31,7 +31,7 @@ from cmat.runners.base import (
     state_to_bytes,
 )
 from cmat.runners.collector import InGraphCollector
-from cmat.runners.devices import compiler_options, place, sharded_axis
+from cmat.runners.devices import compiler_options, place, sharded_axis, to_host
 from cmat.runners.evaluation import evaluate_in_graph
 from cmat.runners.learner import LearnerSetup, build_learner, init_learner, learn, summarise_updates
 
@@ -119,14 +119,15 @@ def make_train(
 
 class JaxTrainer:
     """The `Trainer` (cmat.runners.base) of JAX environments: jitted programs for all the run's
-    seeds (leading axis of every state leaf)."""
+    seeds (leading axis of every state leaf), on every device of the run (all processes' in a
+    distributed run: cmat.runners.distributed)."""
 
     def __init__(self, config: TrainConfig) -> None:
         self.config = config
         self.setup = build_setup(config)
         self.env_spec = self.setup.spec
         self.learner_setup = self.setup.learner
-        self.devices = jax.local_devices()
+        self.devices = jax.devices()
         self.sharded_axis = sharded_axis(len(self.devices), config.seeds, config.num_envs)
         chunk = config.updates_per_log
         collector = self.setup.collector
@@ -165,7 +166,7 @@ class JaxTrainer:
         if not 0 < updates <= self.config.updates_per_log:
             raise ValueError(f"updates must be in 1..{self.config.updates_per_log}, got {updates}")
         state, metrics = self._chunk(state, jnp.asarray(updates, jnp.int32))
-        numbers = {key: np.asarray(value) for key, value in metrics.items()}
+        numbers: dict[str, np.ndarray] = to_host(metrics)
         numbers["env_steps"] = np.full(self.config.seeds, self.env_steps(state))
         return state, numbers
 
@@ -183,13 +184,18 @@ class JaxTrainer:
     ) -> dict[str, np.ndarray]:
         keys = eval_keys(self.config, episode_seed)
         metrics = self._evaluate(state.learner.params, keys, episodes)
-        return {key: np.asarray(value) for key, value in metrics.items()}
+        evaluation: dict[str, np.ndarray] = to_host(metrics)
+        return evaluation
 
     def env_steps(self, state: TrainerState) -> int:
-        return int(np.asarray(state.learner.update_step)[0]) * self.config.steps_per_update
+        """Every seed's update count is the same, so this process's first shard tells it."""
+        step = state.learner.update_step
+        if isinstance(step, jax.Array):
+            step = step.addressable_shards[0].data
+        return int(np.asarray(step).ravel()[0]) * self.config.steps_per_update
 
     def to_bytes(self, state: TrainerState) -> bytes:
-        return state_to_bytes(state)
+        return state_to_bytes(to_host(state))
 
     def from_bytes(self, data: bytes) -> TrainerState:
         template = jax.eval_shape(self._init, seed_keys(self.config)[0])
