@@ -39,7 +39,7 @@ from cmat.config import (
     validate,
 )
 from cmat.envs import probe_env
-from cmat.envs.suites import SUITES
+from cmat.envs.suites import registry
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import explain, resolve_config
@@ -76,13 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     train = commands.add_parser("train", help="train a new run or resume one")
-    train.add_argument("--env", help="environment id (matrix:NAME, smax:SCENARIO, mpe:NAME, "
-                       "jumanji:TASK, mabrax:TASK, "
-                       "fleet dispatch: dispatch:CITY-N-LEVEL (e.g. dispatch:grid-100-mid), "
-                       "your own: jax:package.module:factory; "
-                       "host: mamujoco:SCENARIO-CONF, grf:SCENARIO, "
-                       "pettingzoo:package.module:factory; default matrix:fig1, the "
-                       "paper's Fig. 1 game, which trains in seconds)")
+    train.add_argument("--env", help="environment id: "
+                       + ", ".join(suite.ids for suite in registry().values())
+                       + "; default matrix:fig1, the paper's Fig. 1 game, which trains in "
+                         "seconds")
     train.add_argument("--algo", help=f"algorithm: {', '.join(algorithm_names())} (default cmat)")
     train.add_argument("--steps", type=int, help="environment steps per seed (total_steps)")
     train.add_argument("--seeds", type=int, help="independent seeds trained at once")
@@ -336,8 +333,8 @@ def config_command(args: argparse.Namespace) -> None:
             print(textwrap.fill(docs[name], width=96, initial_indent="    ",
                                 subsequent_indent="    "))
     suite = config.env.partition(":")[0]
-    if suite in SUITES:
-        print(f"# suite {suite}: {SUITES[suite].source}")
+    if suite in registry():
+        print(f"# suite {suite}: {registry()[suite].source}")
     if unavailable is not None:
         print(f"# {config.env} cannot be built on this machine: {unavailable}")
 

@@ -196,10 +196,12 @@ class TrainConfig:
     """One training run: environment, budget, seeds, network and PPO settings."""
 
     env: str = "matrix:fig1"
-    """Environment id: matrix:NAME, smax:SCENARIO, mpe:NAME, jumanji:TASK (RWARE, LBF),
+    """Environment id, PREFIX:NAME, of a suite in the registry (cmat.envs.suites;
+    docs/suites.md): matrix:NAME, smax:SCENARIO, mpe:NAME, jumanji:TASK (RWARE, LBF),
     mabrax:TASK, dispatch:CITY-N-LEVEL (fleet dispatch) or a user's
-    jax:package.module:factory (in-graph: a cmat MarlEnv or a JaxMARL MultiAgentEnv), or a host
-    environment: pettingzoo:package.module:factory, mamujoco:SCENARIO-CONF or grf:SCENARIO."""
+    jax:package.module:factory (in-graph: a cmat MarlEnv or a JaxMARL MultiAgentEnv), a host
+    environment (pettingzoo:package.module:factory, mamujoco:SCENARIO-CONF, grf:SCENARIO), or
+    a suite an installed package adds."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
     algo: str = "cmat"

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tqdm import tqdm
 
+from cmat.envs.suites import registry, suite_of
 from cmat.errors import CmatError
 
 if TYPE_CHECKING:
@@ -28,7 +29,6 @@ if TYPE_CHECKING:
 
     from cmat.policy import Policy
 
-RENDERED_SUITES = ("smax", "mpe", "mamujoco", "pettingzoo")
 FORMATS = (".gif", ".mp4")
 
 
@@ -66,7 +66,7 @@ def render_episodes(
     limit = policy.spec.max_episode_steps if max_steps is None else max_steps
     if limit <= 0:
         raise CmatError(f"--max-steps must be > 0, got {limit}")
-    in_graph = policy.config.env.partition(":")[0] in ("smax", "mpe")
+    in_graph = suite_of(policy.config.env).renderer == "jaxmarl"
     played = (jaxmarl_frames if in_graph else host_frames)(policy, episodes, seed, limit)
     frames = list(tqdm(played, desc=f"playing {episodes} episode{'s' * (episodes > 1)}",
                        unit="frame", disable=None, leave=False))
@@ -88,9 +88,10 @@ def check_request(env_id: str, out: Path, episodes: int, fps: int) -> None:
     file type other than .gif or .mp4, an .mp4 without ffmpeg, or counts below 1."""
     from matplotlib import animation
 
-    if env_id.partition(":")[0] not in RENDERED_SUITES:
+    drawn = [prefix for prefix, suite in registry().items() if suite.renderer is not None]
+    if env_id.partition(":")[0] not in drawn:
         raise CmatError(f"{env_id} has no renderer; cmat render draws "
-                        f"{', '.join(RENDERED_SUITES)} environments")
+                        f"{', '.join(drawn)} environments")
     if out.suffix.lower() not in FORMATS:
         raise CmatError(f"--out must end in {' or '.join(FORMATS)}, got {out.name!r}")
     if episodes <= 0 or fps <= 0:

@@ -36,7 +36,7 @@ from cmat.config import (
     one_line,
     validate,
 )
-from cmat.envs.suites import SUITES
+from cmat.envs.suites import registry
 from cmat.errors import CmatError, read_text
 
 
@@ -191,8 +191,8 @@ def named_layers(env: str, algo: str, preset: str | None) -> list[tuple[str, Any
     Raises CmatError for a preset the algorithm does not declare."""
     layers: list[tuple[str, Any]] = []
     suite = env.partition(":")[0]
-    if suite in SUITES:
-        layers.append((f"suite {suite}", OmegaConf.create(SUITES[suite].settings)))
+    if suite in registry():
+        layers.append((f"suite {suite}", OmegaConf.create(registry()[suite].settings)))
     if algo in algorithm_names():
         layers.append((f"algorithm {algo}", OmegaConf.create(reference_defaults(algo))))
         task_values = task_reference_defaults(algo, env)

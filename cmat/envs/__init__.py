@@ -1,29 +1,24 @@
 """Environment registry: `make_env("PREFIX:NAME", **options)` builds any supported `MarlEnv`.
 
-Suites are imported on first use, so matrix games never pay for importing JaxMARL, and JAX
-itself is first imported when an environment is built: config and spec errors are reported
-without it.
+Each suite is one entry of the registry (cmat.envs.suites), whose builder is imported on first
+use, so matrix games never pay for importing JaxMARL, and JAX itself is first imported when an
+environment is built: config and spec errors are reported without it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import inspect
-from collections.abc import Callable, Iterable
-from functools import partial
 from typing import TYPE_CHECKING, Any
 
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
-from cmat.envs.suites import ENV_PREFIXES, HOST_PREFIXES
+from cmat.envs.suites import is_host_env, suite_of
 from cmat.errors import CmatError, SuiteUnavailable
 
 if TYPE_CHECKING:
     import jax
 
 __all__ = [
-    "ENV_PREFIXES", "HOST_PREFIXES", "AgentIdWrapper", "EnvSpec", "MarlEnv", "TimeStep", "make_env",
-    "probe_env",
+    "AgentIdWrapper", "EnvSpec", "MarlEnv", "TimeStep", "make_env", "probe_env",
 ]
 
 
@@ -54,80 +49,30 @@ class AgentIdWrapper:
 
 
 def make_env(env_id: str, agent_id: bool = False, **kwargs: Any) -> MarlEnv:
-    """Build `matrix:NAME`, `smax:SCENARIO`, `mpe:NAME`, `jumanji:TASK`, `mabrax:TASK`,
-    `dispatch:CITY-N-LEVEL` (`cmat.envs.dispatch`) or a user's `jax:package.module:factory`
-    (`cmat.envs.user_jax`, which takes any option its factory takes); `agent_id` appends one-hot
-    agent ids."""
-    prefix, _, name = env_id.partition(":")
-    factory: Callable[..., MarlEnv]
-    if prefix == "matrix":
-        from cmat.envs import matrix
+    """Build the in-graph environment `env_id` (PREFIX:NAME) of any suite in the registry
+    (cmat.envs.suites: `matrix:NAME`, `smax:SCENARIO`, `mpe:NAME`, `jumanji:TASK`,
+    `mabrax:TASK`, `dispatch:CITY-N-LEVEL`, a user's `jax:package.module:factory`, and the
+    suites installed packages add) with the options `kwargs`; `agent_id` appends one-hot agent
+    ids.
 
-        factory = matrix.GAMES[_choose("matrix game", name, matrix.GAMES)]
-        options: Iterable[str] = inspect.signature(factory).parameters
-    elif prefix == "smax":
-        from cmat.envs import jaxmarl_envs
-
-        scenario = (name if jaxmarl_envs.MARINE_TEAM.fullmatch(name)
-                    else _choose("SMAX scenario", name, jaxmarl_envs.SMAX_SCENARIOS,
-                                 also="Nm (N marines a side, 1 <= N <= 999)"))
-        factory = partial(jaxmarl_envs.SmaxEnv, scenario)
-        options = jaxmarl_envs.SMAX_OPTIONS
-    elif prefix == "mpe":
-        from cmat.envs import jaxmarl_envs
-
-        factory = jaxmarl_envs.MPE_ENVS[_choose("MPE environment", name, jaxmarl_envs.MPE_ENVS)]
-        options = jaxmarl_envs.MPE_OPTIONS
-    elif prefix == "jumanji":
-        from cmat.envs import jumanji_envs
-
-        factory = jumanji_envs.TASKS[_choose("Jumanji task", name, jumanji_envs.TASKS)]
-        options = inspect.signature(factory).parameters
-    elif prefix == "mabrax":
-        if importlib.util.find_spec("brax") is None:
-            raise SuiteUnavailable(
-                f"{env_id} needs brax, which is not installed: "
-                f"pip install 'brax>=0.14.2,<0.15' (cmat's mabrax extra)"
-            )
-        from cmat.envs import mabrax_envs
-
-        factory = partial(mabrax_envs.MabraxEnv, _choose("MABrax task", name, mabrax_envs.TASKS))
-        options = mabrax_envs.OPTIONS
-    elif prefix == "dispatch":
-        from cmat.envs import dispatch
-
-        factory = partial(dispatch.make_task, name)
-        options = dispatch.OPTIONS
-    elif prefix == "jax":
-        from cmat.envs.user_jax import make_user_env
-
-        env = make_user_env(env_id, name, **kwargs)
-        return AgentIdWrapper(env) if agent_id else env
-    elif prefix in HOST_PREFIXES:
+    Raises CmatError for an unknown prefix, name or option and for a host suite's id,
+    SuiteUnavailable where the suite needs a package that is not installed."""
+    suite = suite_of(env_id)
+    if suite.host:
         raise CmatError(
             f"{env_id} is a host environment: build it with cmat.envs.host.make_host_env "
             f"(the CLI's trainer does); make_env builds in-graph JAX environments only"
         )
-    else:
-        raise CmatError(
-            f"unknown environment prefix {prefix!r} in {env_id!r} (ids are PREFIX:NAME); "
-            f"available: {', '.join(ENV_PREFIXES)}"
-        )
-    unknown = sorted(set(kwargs) - set(options))
-    if unknown:
-        raise CmatError(
-            f"unknown option {unknown[0]!r} for {env_id}; accepted: "
-            f"{', '.join(['agent_id', *options])}"
-        )
-    env = factory(**kwargs)
+    factory, options = suite.build(env_id)
+    if options is not None:
+        unknown = sorted(set(kwargs) - set(options))
+        if unknown:
+            raise CmatError(
+                f"unknown option {unknown[0]!r} for {env_id}; accepted: "
+                f"{', '.join(['agent_id', *options])}"
+            )
+    env: MarlEnv = factory(**kwargs)
     return AgentIdWrapper(env) if agent_id else env
-
-
-def _choose(kind: str, name: str, available: Iterable[str], also: str = "") -> str:
-    if name not in available:
-        listed = ", ".join([*available, *([also] if also else [])])
-        raise CmatError(f"unknown {kind} {name!r}; available: {listed}")
-    return name
 
 
 def probe_env(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int | None, str | None]:
@@ -138,7 +83,7 @@ def probe_env(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int | None, str 
     Raises CmatError for an id, option or option value that is wrong on any machine (an unknown
     scenario, a typo), so that an experiment stops on it rather than skipping the task."""
     try:
-        if env_id.partition(":")[0] in HOST_PREFIXES:
+        if is_host_env(env_id):
             from cmat.envs.host import make_host_env
 
             env: Any = make_host_env(env_id, **env_kwargs)

@@ -17,6 +17,8 @@ import inspect
 import io
 import re
 import sys
+from collections.abc import Callable, Iterable
+from functools import partial
 from typing import Any, cast
 from unittest import mock
 
@@ -25,6 +27,7 @@ import jax.numpy as jnp
 
 from cmat.envs.autoreset import auto_reset
 from cmat.envs.protocol import EnvSpec, TimeStep
+from cmat.envs.suites import choose
 
 # JaxMARL prints while importing, after its brax probe rebinds sys.stdout/stderr to
 # sys.__stdout__/__stderr__; patching those keeps the prints quiet and the streams as they were.
@@ -216,3 +219,16 @@ def simple_spread(**kwargs: Any) -> JaxMarlEnv:
 
 MPE_ENVS = {"simple_spread": simple_spread}
 """MPE environment name → factory."""
+
+
+def build_smax(env_id: str, name: str) -> tuple[Callable[..., JaxMarlEnv], Iterable[str]]:
+    """The smax suite's builder (cmat.envs.suites.Builder): a SMAX scenario or an `Nm` team."""
+    scenario = (name if MARINE_TEAM.fullmatch(name)
+                else choose("SMAX scenario", name, SMAX_SCENARIOS,
+                            also="Nm (N marines a side, 1 <= N <= 999)"))
+    return partial(SmaxEnv, scenario), SMAX_OPTIONS
+
+
+def build_mpe(env_id: str, name: str) -> tuple[Callable[..., JaxMarlEnv], Iterable[str]]:
+    """The mpe suite's builder (cmat.envs.suites.Builder)."""
+    return MPE_ENVS[choose("MPE environment", name, MPE_ENVS)], MPE_OPTIONS

@@ -26,8 +26,9 @@ with the reward and `done` of the transition that ended the episode.
 
 from __future__ import annotations
 
+import inspect
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Any
 
@@ -44,6 +45,7 @@ from jumanji.types import TimeStep as JumanjiTimeStep
 
 from cmat.envs.autoreset import auto_reset
 from cmat.envs.protocol import EnvSpec, TimeStep
+from cmat.envs.suites import choose
 
 
 def _rware(rows: int, columns: int, agents: int, queue: int) -> dict[str, int]:
@@ -202,3 +204,9 @@ TASKS: dict[str, Callable[..., JumanjiEnv]] = {
 }
 """Task name (the part of `jumanji:NAME` after the colon) → factory; its keyword arguments are the
 options `make_env` accepts for it."""
+
+
+def build(env_id: str, name: str) -> tuple[Callable[..., JumanjiEnv], Iterable[str]]:
+    """The jumanji suite's builder (cmat.envs.suites.Builder)."""
+    factory = TASKS[choose("Jumanji task", name, TASKS)]
+    return factory, inspect.signature(factory).parameters

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable, Iterable
+from functools import partial
 from typing import Any
 
 import jax
@@ -31,6 +33,7 @@ import jax.numpy as jnp
 
 from cmat.envs.jaxmarl_envs import JaxMarlEnv, stack_padded
 from cmat.envs.protocol import EnvSpec
+from cmat.envs.suites import choose
 
 # isort: split
 # After cmat.envs.jaxmarl_envs, which imports JaxMARL with its import-time prints silenced.
@@ -95,3 +98,8 @@ class MabraxEnv(JaxMarlEnv):
     def _global_state(self, obs: dict[str, jax.Array], state: Any) -> jax.Array:
         brax_obs: jax.Array = state.obs
         return brax_obs.astype(jnp.float32)
+
+
+def build(env_id: str, name: str) -> tuple[Callable[..., MabraxEnv], Iterable[str]]:
+    """The mabrax suite's builder (cmat.envs.suites.Builder)."""
+    return partial(MabraxEnv, choose("MABrax task", name, TASKS)), OPTIONS

@@ -9,13 +9,15 @@ id keeps the policy order independent: permuting the agents permutes their ids w
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import inspect
+from collections.abc import Callable, Iterable, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from cmat.envs.protocol import EnvSpec, TimeStep
+from cmat.envs.suites import choose
 from cmat.errors import CmatError
 
 FIG1_PAYOFF = ((1.0, 0.0), (-100.0, 100.0))
@@ -82,3 +84,9 @@ def penalty(k: float = -100.0) -> MatrixGame:
 
 GAMES: dict[str, Callable[..., MatrixGame]] = {"fig1": fig1, "penalty": penalty}
 """Matrix game name → factory; the factory's keyword arguments are the game's options."""
+
+
+def build(env_id: str, name: str) -> tuple[Callable[..., MatrixGame], Iterable[str]]:
+    """The suite's builder (cmat.envs.suites.Builder): the game NAME and its options."""
+    factory = GAMES[choose("matrix game", name, GAMES)]
+    return factory, inspect.signature(factory).parameters

@@ -1,4 +1,6 @@
-"""Benchmark suites: the environment-id prefixes cmat knows and each suite's default settings.
+"""Suites: the environment-id prefixes cmat knows, each one `Suite` entry (how to build its
+environments, its default settings, whether it runs on the host, how it is drawn), and those that
+installed packages add (`registry`).
 
 A suite's settings are the config layer between the dataclass defaults and the algorithm's
 reference defaults (`cmat.resolve.resolve_config`): the reference MAT hyper-parameters of that
@@ -10,8 +12,16 @@ each value it set.
 
 from __future__ import annotations
 
+import functools
+import importlib
+import importlib.metadata
+import importlib.util
+import sys
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
+
+from cmat.errors import CmatError, SuiteUnavailable
 
 PAPER_BUDGET = 10_000_000
 """Env steps per seed of every task in the paper's experiments (MAT's budget)."""
@@ -68,60 +78,147 @@ seeds and checkpoints (CMAT 16.4–21.7, MAPPO 9.0–23.3; service rate 52–96 
 held CMAT at 19.0–22.4 and MAPPO at 20.2–21.4 (service rate 96–98 %)."""
 
 
+Builder = Callable[[str, str], tuple[Callable[..., Any], Iterable[str] | None]]
+"""A suite's builder: (env id, NAME after the prefix) -> (a factory that takes the environment's
+options as keywords and returns it, the option names it accepts or None where the factory checks
+them itself). Raises CmatError for a NAME the suite does not have."""
+
+
 @dataclass(frozen=True)
 class Suite:
-    """One family of environments behind an id prefix (`PREFIX:NAME`)."""
+    """One family of environments behind an id prefix (`PREFIX:NAME`): everything cmat knows of
+    it, with no import of the suite's own code or of JAX (its builder is imported on first use).
+    A package adds one by naming a `Suite` under the `cmat.suites` entry-point group, the entry
+    point's name being the prefix (docs/own-environment.md)."""
 
+    ids: str
+    """The form of its ids, for help texts: `smax:SCENARIO`."""
+    builder: str
+    """`module:function` of its `Builder`; imported when an environment is built."""
     settings: dict[str, Any]
     """Config values (nested like `TrainConfig`) this suite's runs start from."""
     source: str
     """Where the settings come from (`cmat config` prints it under the fields, whose sources
     read `suite PREFIX`)."""
     host: bool = False
-    """Stepped in Python by the host runner (cmat.runners.host), not inside the JAX program."""
+    """Stepped in Python by the host runner (cmat.runners.host), not inside the JAX program:
+    its factory takes `seed` (the run's seed) besides the options."""
+    requires: tuple[str, str] | None = None
+    """(module, how to install it) where the suite needs a package cmat does not install:
+    without it the suite is unavailable here (`SuiteUnavailable`), not wrong."""
+    renderer: str | None = None
+    """How `cmat render` draws it: 'jaxmarl' (JaxMARL's own renderers, in-graph) or 'rgb_array'
+    (the simulator's `render()`), None where it cannot."""
+
+    def build(self, env_id: str) -> tuple[Callable[..., Any], Iterable[str] | None]:
+        """The factory and option names of `env_id` (its `Builder`'s answer).
+
+        Raises SuiteUnavailable where `requires` is missing, CmatError for an unknown NAME."""
+        if self.requires is not None and importlib.util.find_spec(self.requires[0]) is None:
+            raise SuiteUnavailable(f"{env_id} needs {self.requires[0]}, which is not installed: "
+                                   f"{self.requires[1]}")
+        module, _, function = self.builder.partition(":")
+        builder: Builder = getattr(importlib.import_module(module), function)
+        return builder(env_id, env_id.partition(":")[2])
 
 
 SUITES: dict[str, Suite] = {
     "matrix": Suite(
+        "matrix:NAME", "cmat.envs.matrix:build",
         {"total_steps": MATRIX_BUDGET, "num_envs": 16, "rollout_length": 25, "ppo": {"epochs": 5}},
         "matrix games: the budget they need, measured (MATRIX_BUDGET)",
     ),
-    "smax": Suite({**SMAC_SETTINGS, "total_steps": PAPER_BUDGET},
-                  "MAT's SMAC scripts; the paper's 1e7 steps"),
-    "mpe": Suite({**SMAC_SETTINGS, "total_steps": PAPER_BUDGET},
-                 "no MAT reference for MPE: its SMAC settings; the paper's 1e7 steps"),
-    "jumanji": Suite(MAVA_SETTINGS,
+    "smax": Suite("smax:SCENARIO", "cmat.envs.jaxmarl_envs:build_smax",
+                  {**SMAC_SETTINGS, "total_steps": PAPER_BUDGET},
+                  "MAT's SMAC scripts; the paper's 1e7 steps", renderer="jaxmarl"),
+    "mpe": Suite("mpe:NAME", "cmat.envs.jaxmarl_envs:build_mpe",
+                 {**SMAC_SETTINGS, "total_steps": PAPER_BUDGET},
+                 "no MAT reference for MPE: its SMAC settings; the paper's 1e7 steps",
+                 renderer="jaxmarl"),
+    "jumanji": Suite("jumanji:TASK", "cmat.envs.jumanji_envs:build", MAVA_SETTINGS,
                      "Mava's ff_mappo/ff_sable defaults for Jumanji RWARE and LBF; its budget"),
-    "mabrax": Suite(MAVA_SETTINGS,
-                    "Mava's ff_mappo/ff_sable defaults, which it runs MABrax with; its budget"),
-    "dispatch": Suite(DISPATCH_SETTINGS,
+    "mabrax": Suite("mabrax:TASK", "cmat.envs.mabrax_envs:build", MAVA_SETTINGS,
+                    "Mava's ff_mappo/ff_sable defaults, which it runs MABrax with; its budget",
+                    requires=("brax", "pip install 'brax>=0.14.2,<0.15' (cmat's mabrax extra)")),
+    "dispatch": Suite("dispatch:CITY-N-LEVEL (e.g. dispatch:grid-100-mid)",
+                      "cmat.envs.dispatch:build", DISPATCH_SETTINGS,
                       "cmat's dispatch suite: one episode per rollout, m = 5 as in the CMAT "
                       "authors' ride-sharing code; budget and PPO settings measured "
                       "(DISPATCH_SETTINGS)"),
-    "jax": Suite({"total_steps": PAPER_BUDGET},
+    "jax": Suite("jax:package.module:factory (your own)", "cmat.envs.user_jax:build",
+                 {"total_steps": PAPER_BUDGET},
                  "a user's JAX env: the dataclass defaults; the paper's 1e7 steps"),
     "mamujoco": Suite(
+        "mamujoco:SCENARIO-CONF", "cmat.envs.host.mamujoco:build",
         {"num_envs": 40, "rollout_length": 100, "total_steps": PAPER_BUDGET, "eval_episodes": 8,
          "env_kwargs": {"agent_id": True},
          "ppo": {"lr": 5e-5, "adam_eps": 1e-5, "epochs": 10, "num_minibatches": 40,
                  "clip_eps": 0.05, "ent_coef": 0.001, "max_grad_norm": 0.5}},
         "MAT's MA-MuJoCo scripts (agent ids: the agents are different joints); the paper's 1e7",
-        host=True,
+        host=True, renderer="rgb_array",
     ),
     "grf": Suite(
+        "grf:SCENARIO", "cmat.envs.host.grf:build",
         {"num_envs": 20, "rollout_length": 200, "total_steps": PAPER_BUDGET,
          "ppo": {"lr": 5e-4, "adam_eps": 1e-5, "epochs": 10, "num_minibatches": 1,
                  "clip_eps": 0.05, "ent_coef": 0.01, "max_grad_norm": 0.5}},
         "MAT's GRF scripts; the paper's 1e7 steps",
         host=True,
     ),
-    "pettingzoo": Suite({"total_steps": PAPER_BUDGET},
-                        "a user's ParallelEnv: the paper's 1e7 steps", host=True),
+    "pettingzoo": Suite("pettingzoo:package.module:factory (your own)",
+                        "cmat.envs.host.pettingzoo_env:build", {"total_steps": PAPER_BUDGET},
+                        "a user's ParallelEnv: the paper's 1e7 steps", host=True,
+                        renderer="rgb_array"),
 }
-"""Suite prefix -> its settings. The order is the order error messages list them in."""
+"""The suites cmat ships: prefix -> Suite, in the order help texts list them."""
 
-ENV_PREFIXES = tuple(SUITES)
-"""Suites an environment id may name before the colon."""
-HOST_PREFIXES = tuple(prefix for prefix, suite in SUITES.items() if suite.host)
-"""Host suites (cmat.envs.host): stepped in Python by cmat.runners.host."""
+ENTRY_POINTS = "cmat.suites"
+"""The entry-point group where installed packages name their suites."""
 
+
+@functools.cache
+def registry() -> dict[str, Suite]:
+    """Every suite: cmat's own (`SUITES`), then those installed packages add under
+    `ENTRY_POINTS`. A plugin that cannot be loaded, is not a `Suite` or takes a prefix cmat
+    has is skipped with a one-line warning on stderr."""
+    suites = dict(SUITES)
+    for entry in sorted(importlib.metadata.entry_points(group=ENTRY_POINTS),
+                        key=lambda entry: entry.name):
+        try:
+            suite = entry.load()
+        except Exception as error:  # a broken plugin must not stop cmat
+            problem: str | None = f"cannot be loaded ({type(error).__name__}: {error})"
+        else:
+            problem = (f"is not a cmat.envs.suites.Suite ({type(suite).__name__})"
+                       if not isinstance(suite, Suite)
+                       else "takes a prefix cmat has" if entry.name in suites else None)
+        if problem is not None:
+            print(f"cmat: warning: the suite {entry.name!r} ({entry.value}) "
+                  f"{problem.splitlines()[0]}; skipped", file=sys.stderr)
+            continue
+        suites[entry.name] = suite
+    return suites
+
+
+def suite_of(env_id: str) -> Suite:
+    """The suite of `env_id` (PREFIX:NAME); CmatError for an unknown prefix."""
+    prefix = env_id.partition(":")[0]
+    suites = registry()
+    if prefix not in suites:
+        raise CmatError(f"unknown environment prefix {prefix!r} in {env_id!r} (ids are "
+                        f"PREFIX:NAME); available: {', '.join(suites)}")
+    return suites[prefix]
+
+
+def is_host_env(env_id: str) -> bool:
+    """Whether `env_id` names an environment of a host suite (an unknown prefix: False)."""
+    suite = registry().get(env_id.partition(":")[0])
+    return suite is not None and suite.host
+
+
+def choose(kind: str, name: str, available: Iterable[str], also: str = "") -> str:
+    """`name`, where it is one of `available`; else CmatError listing them (and `also`)."""
+    if name not in available:
+        listed = ", ".join([*available, *([also] if also else [])])
+        raise CmatError(f"unknown {kind} {name!r}; available: {listed}")
+    return name

@@ -32,6 +32,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+from collections.abc import Callable
+from functools import partial
 from typing import Any, cast
 
 import flax.serialization
@@ -390,3 +392,9 @@ def _described(value: Any) -> str:
 
 def _keys(value: Any) -> str:
     return str(sorted(value)) if isinstance(value, dict) else type(value).__name__
+
+
+def build(env_id: str, name: str) -> tuple[Callable[..., MarlEnv], None]:
+    """The jax suite's builder (cmat.envs.suites.Builder): NAME is `package.module:factory`,
+    which takes any option it takes (`make_user_env` checks them)."""
+    return partial(make_user_env, env_id, name), None

@@ -12,6 +12,8 @@ Episodes are 60 one-minute steps starting between 08:00 and 10:00 (Manhattan: a 
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Iterable
+from functools import partial
 from typing import Any
 
 from cmat.envs.dispatch.city import grid_city, manhattan_city
@@ -61,3 +63,8 @@ def make_task(name: str, **options: Any) -> DispatchEnv:
     else:
         city = manhattan_city()
     return DispatchEnv(f"dispatch:{name}", city, size, DEMAND_LEVELS[level], **options)
+
+
+def build(env_id: str, name: str) -> tuple[Callable[..., DispatchEnv], Iterable[str]]:
+    """The dispatch suite's builder (cmat.envs.suites.Builder); `make_task` checks NAME."""
+    return partial(make_task, name), OPTIONS

@@ -15,12 +15,12 @@ from __future__ import annotations
 from typing import Any
 
 from cmat.config import NONFINITE_POLICIES
-from cmat.envs import HOST_PREFIXES
 from cmat.envs.host.protocol import AutoReset, HostAgentIdWrapper, HostEnv, HostTimeStep
+from cmat.envs.suites import is_host_env, registry, suite_of
 from cmat.errors import CmatError
 
 __all__ = [
-    "DEFAULT_WORKERS", "HOST_PREFIXES", "HostEnv", "HostTimeStep", "is_host_env", "make_host_env",
+    "DEFAULT_WORKERS", "HostEnv", "HostTimeStep", "is_host_env", "make_host_env",
 ]
 
 
@@ -32,43 +32,26 @@ the workers compete with XLA for the same two cores. With spare cores, GRF (7 ms
 from `host_workers`."""
 
 
-def is_host_env(env_id: str) -> bool:
-    """Whether `env_id` names a host environment."""
-    return env_id.partition(":")[0] in HOST_PREFIXES
-
-
 def make_host_env(
     env_id: str, agent_id: bool = False, seed: int | None = None, nonfinite: str = "error",
     **kwargs: Any
 ) -> HostEnv:
-    """Build the host env `env_id`; `agent_id` appends one-hot agent ids to observations;
-    `seed` seeds simulators that take their seed when built (GRF; others seed at `reset`);
-    `nonfinite` ("error" or "warn", `TrainConfig.host_nonfinite`) says what a NaN or infinite
-    observation, reward or state does (`cmat.envs.host.protocol.AutoReset`).
+    """Build the host env `env_id` of any host suite in the registry (cmat.envs.suites);
+    `agent_id` appends one-hot agent ids to observations; `seed` seeds simulators that take
+    their seed when built (GRF; others seed at `reset`); `nonfinite` ("error" or "warn",
+    `TrainConfig.host_nonfinite`) says what a NaN or infinite observation, reward or state does
+    (`cmat.envs.host.protocol.AutoReset`).
 
-    Raises CmatError for an unknown prefix or `nonfinite` value."""
+    Raises CmatError for an unknown prefix, an in-graph suite's id or a `nonfinite` value."""
     if nonfinite not in NONFINITE_POLICIES:
         raise CmatError(f"nonfinite must be one of {', '.join(NONFINITE_POLICIES)}, "
                         f"got {nonfinite!r}")
-    prefix, _, name = env_id.partition(":")
-    env: AutoReset
-    if prefix == "pettingzoo":
-        from cmat.envs.host.pettingzoo_env import make_pettingzoo_env
-
-        env = make_pettingzoo_env(env_id, name, **kwargs)
-    elif prefix == "mamujoco":
-        from cmat.envs.host.mamujoco import make_mamujoco_env
-
-        env = make_mamujoco_env(env_id, name, **kwargs)
-    elif prefix == "grf":
-        from cmat.envs.host.grf import GRFEnv
-
-        env = GRFEnv(env_id, name, seed=seed or 0, **kwargs)
-    else:
-        raise CmatError(
-            f"unknown host environment prefix {prefix!r} in {env_id!r}; "
-            f"available: {', '.join(HOST_PREFIXES)}"
-        )
+    suite = suite_of(env_id)
+    if not suite.host:
+        hosts = [prefix for prefix, entry in registry().items() if entry.host]
+        raise CmatError(f"{env_id} is not a host environment; host suites: {', '.join(hosts)}")
+    factory, _ = suite.build(env_id)
+    env: AutoReset = factory(seed=seed or 0, **kwargs)
     env.nonfinite = nonfinite
     return HostAgentIdWrapper(env) if agent_id else env
 

@@ -13,6 +13,8 @@ cores). Keyword arguments go to `gfootball.env.create_environment` (e.g. `reward
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -110,3 +112,8 @@ class GRFEnv(AutoReset):
         self._score += float(info.get("score_reward", 0.0))
         won = bool(done) and self._score > 0
         return self._obs(obs), self._mask, float(np.mean(reward)), bool(done), won
+
+
+def build(env_id: str, name: str) -> tuple[Callable[..., GRFEnv], None]:
+    """The grf suite's builder (cmat.envs.suites.Builder): GRF takes its seed when built."""
+    return partial(GRFEnv, env_id, name), None

@@ -17,6 +17,7 @@ import io
 import logging
 import re
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 from cmat.envs.host.pettingzoo_env import PettingZooEnv
@@ -133,3 +134,9 @@ def make_mamujoco_env(env_id: str, name: str, **kwargs: Any) -> PettingZooEnv:
         raise CmatError(f"bad option for {env_id}: {error}") from None
     limit = getattr(getattr(env.single_agent_env, "spec", None), "max_episode_steps", None)
     return PettingZooEnv(env, env_id, max_episode_steps=limit or 1000)
+
+
+def build(env_id: str, name: str) -> tuple[Callable[..., PettingZooEnv], None]:
+    """The mamujoco suite's builder (cmat.envs.suites.Builder); the simulator is seeded at
+    reset, so the factory leaves `seed` alone."""
+    return lambda seed, **options: make_mamujoco_env(env_id, name, **options), None

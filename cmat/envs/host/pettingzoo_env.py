@@ -38,6 +38,7 @@ How a ParallelEnv maps onto the protocol (docs/own-environment.md):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -361,3 +362,9 @@ class PettingZooEnv(AutoReset):
             raise CmatError(f"{where} flattens to {flat.size} values, but its observation space "
                             f"declares {self._obs_sizes[index]}")
         return flat
+
+
+def build(env_id: str, name: str) -> tuple[Callable[..., PettingZooEnv], None]:
+    """The pettingzoo suite's builder (cmat.envs.suites.Builder): NAME is
+    `package.module:factory`; environments are seeded at reset, so `seed` is left alone."""
+    return lambda seed, **options: make_pettingzoo_env(env_id, name, **options), None
