@@ -205,7 +205,7 @@ class TrainConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
     algo: str = "cmat"
-    """One of the registry's algorithms (`cmat.algorithms.ALGORITHM_CLASSES`): cmat, mat,
+    """One of the registry's algorithms (`cmat.algorithms.entries`): cmat, mat,
     pmat, triple_bert, happo, mappo, sable."""
     total_steps: int = 200_000
     """Environment steps per seed (one step = one joint action in one environment)."""

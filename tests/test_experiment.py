@@ -23,7 +23,6 @@ import pytest
 import yaml
 from rliable import metrics as rliable_metrics
 
-from cmat.algorithms import ALGORITHM_LABELS, algorithm_names
 from cmat.cli import main
 from cmat.envs.host import grf
 from cmat.errors import CmatError, SuiteUnavailable
@@ -775,10 +774,6 @@ def test_a_spec_names_the_paper_preset_or_the_defaults(tmp_path: Path) -> None:
     assert configs["paper"].preset == "paper" and configs["default"].preset is None
     assert (configs["paper"].num_envs, configs["default"].num_envs) == (8, 16)  # matrix suite
     assert configs["paper"].ppo == load_config(overrides=["preset=paper"]).ppo
-
-
-def test_every_algorithm_has_a_legend_label() -> None:
-    assert list(ALGORITHM_LABELS) == list(algorithm_names())
 
 
 def test_published_suite_means_are_listed_for_a_suites_tasks_and_drawn_only_on_its_scale(

@@ -1,6 +1,7 @@
-"""Suites from other packages: a suite defined in tests/plugins and named under the
-`cmat.suites` entry point of a package installed for the test (a dist-info on PYTHONPATH) is
-found, resolved with its own settings and trained by `cmat train`, without any edit of cmat."""
+"""Suites and algorithms from other packages: a suite and an algorithm defined in tests/plugins
+and named under the `cmat.suites` and `cmat.algorithms` entry points of a package installed for
+the test (a dist-info on PYTHONPATH) are found, resolved with their own settings and trained by
+`cmat train`, without any edit of cmat."""
 
 from __future__ import annotations
 
@@ -18,13 +19,13 @@ pytestmark = pytest.mark.quick_compiles
 PLUGINS = Path(__file__).parent / "plugins"
 
 
-def installed(tmp_path: Path, entry: str) -> dict[str, str]:
-    """An environment whose Python sees a package `cmat-coins` naming `entry` as a suite."""
+def installed(tmp_path: Path, entry: str, group: str = "cmat.suites") -> dict[str, str]:
+    """An environment whose Python sees a package `cmat-coins` naming `entry` in `group`."""
     site = tmp_path / "site"
     info = site / "cmat_coins-0.1.dist-info"
     info.mkdir(parents=True)
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: cmat-coins\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text(f"[cmat.suites]\n{entry}\n")
+    (info / "entry_points.txt").write_text(f"[{group}]\n{entry}\n")
     path = os.pathsep.join([str(site), str(PLUGINS), os.environ.get("PYTHONPATH", "")])
     return {**os.environ, "PYTHONPATH": path, "JAX_PLATFORMS": "cpu"}
 
@@ -62,3 +63,21 @@ def test_a_broken_plugin_is_skipped_with_one_line(tmp_path: Path, entry: str,
     assert done.returncode == 0, done.stderr[-3000:]
     warnings = [line for line in done.stderr.splitlines() if line.startswith("cmat: warning")]
     assert len(warnings) == 1 and problem in warnings[0] and warnings[0].endswith("skipped")
+
+
+def test_a_plugin_algorithm_is_found_configured_and_trained(tmp_path: Path) -> None:
+    env = installed(tmp_path, "toy_mappo = cmat_toy_algorithm:ENTRY", "cmat.algorithms")
+    assert "toy_mappo" in cmat(env, "train", "--help").stdout
+    out = tmp_path / "run"
+    done = cmat(env, "train", "--algo", "toy_mappo", "--out", str(out))
+    assert done.returncode == 0, done.stderr[-3000:]
+    text = (out / "config.yaml").read_text()
+    assert yaml.safe_load(text)["ppo"]["lr"] == 1e-3 and "algorithm toy_mappo" in text
+    evaluation = pd.read_csv(out / "metrics.csv").query("kind == 'eval'")
+    assert evaluation["episode_return"].iloc[-1] == pytest.approx(100.0)
+    broken = cmat(installed(tmp_path / "broken", "mat = cmat_toy_algorithm:ENTRY",
+                            "cmat.algorithms"), "train", "--dry-run")
+    assert broken.returncode == 0, broken.stderr[-3000:]
+    assert [line for line in broken.stderr.splitlines() if line.startswith("cmat: warning")] == [
+        "cmat: warning: the algorithm 'mat' (cmat_toy_algorithm:ENTRY) takes a name cmat has; "
+        "skipped"]

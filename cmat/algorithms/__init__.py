@@ -1,6 +1,7 @@
 """The algorithm registry: the one place algorithms are listed.
 
-Each class in `ALGORITHM_CLASSES` declares what the rest of cmat needs to know about it (see
+Each algorithm is one `AlgorithmEntry` (`ALGORITHMS`, and those installed packages add:
+`entries`), whose class declares what the rest of cmat needs to know about it (see
 `cmat.algorithms.base.Algorithm`): its `name`, its `reference_defaults`,
 `task_reference_defaults` and `presets` (config layers), the fine-tuning stages it supports and
 its `capabilities` (which algorithm-specific options it accepts). Config checks that depend on
@@ -11,6 +12,9 @@ from __future__ import annotations
 
 import functools
 import importlib
+import importlib.metadata
+import sys
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from cmat.config import PPOConfig
@@ -21,38 +25,65 @@ if TYPE_CHECKING:
     from cmat.config import NetworkConfig, TrainConfig
     from cmat.envs.protocol import EnvSpec
 
-ALGORITHM_CLASSES = {
-    "cmat": "cmat.algorithms.cmat:CMAT",
-    "mat": "cmat.algorithms.mat:MAT",
-    "pmat": "cmat.algorithms.pmat:PMAT",
-    "triple_bert": "cmat.algorithms.triple_bert:TripleBERT",
-    "happo": "cmat.algorithms.happo:HAPPO",
-    "mappo": "cmat.algorithms.mappo:MAPPO",
-    "sable": "cmat.algorithms.sable:Sable",
-}
-"""Each algorithm's name and where its class lives, in the order `cmat config` and error messages
-list them. The names are here, not read from the classes, so that the CLI can list them and
-check a config's `algo` without importing JAX."""
+@dataclass(frozen=True)
+class AlgorithmEntry:
+    """What cmat knows of an algorithm without importing it (nor JAX): its name, the name of
+    its line in tables and figures, and where its class lives. A package adds an algorithm by
+    naming an `AlgorithmEntry` under the `cmat.algorithms` entry-point group, the entry point's
+    name being the algorithm's (docs/algorithms.md)."""
 
-ALGORITHM_LABELS = {
-    "cmat": "CMAT",
-    "mat": "MAT",
-    "pmat": "PMAT",
-    "triple_bert": "Triple-BERT",
-    "happo": "HAPPO",
-    "mappo": "MAPPO",
-    "sable": "Sable",
+    label: str
+    """Its name in tables, figures and claims (the papers' spelling)."""
+    cls: str
+    """`module:Class` of its `cmat.algorithms.base.Algorithm` subclass, imported on first use."""
+
+
+ALGORITHMS = {
+    "cmat": AlgorithmEntry("CMAT", "cmat.algorithms.cmat:CMAT"),
+    "mat": AlgorithmEntry("MAT", "cmat.algorithms.mat:MAT"),
+    "pmat": AlgorithmEntry("PMAT", "cmat.algorithms.pmat:PMAT"),
+    "triple_bert": AlgorithmEntry("Triple-BERT", "cmat.algorithms.triple_bert:TripleBERT"),
+    "happo": AlgorithmEntry("HAPPO", "cmat.algorithms.happo:HAPPO"),
+    "mappo": AlgorithmEntry("MAPPO", "cmat.algorithms.mappo:MAPPO"),
+    "sable": AlgorithmEntry("Sable", "cmat.algorithms.sable:Sable"),
 }
-"""Each algorithm's name in tables, figures and claims (the papers' spelling)."""
+"""The algorithms cmat ships, in the order `cmat config` and error messages list them."""
+
+ENTRY_POINTS = "cmat.algorithms"
+"""The entry-point group where installed packages name their algorithms."""
+
+
+@functools.cache
+def entries() -> dict[str, AlgorithmEntry]:
+    """Every algorithm: cmat's own (`ALGORITHMS`), then those installed packages add under
+    `ENTRY_POINTS`. A plugin that cannot be loaded, is not an `AlgorithmEntry` or takes a name
+    cmat has is skipped with a one-line warning on stderr."""
+    found = dict(ALGORITHMS)
+    for entry in sorted(importlib.metadata.entry_points(group=ENTRY_POINTS),
+                        key=lambda entry: entry.name):
+        try:
+            value = entry.load()
+        except Exception as error:  # a broken plugin must not stop cmat
+            problem: str | None = f"cannot be loaded ({type(error).__name__}: {error})"
+        else:
+            problem = (f"is not a cmat.algorithms.AlgorithmEntry ({type(value).__name__})"
+                       if not isinstance(value, AlgorithmEntry)
+                       else "takes a name cmat has" if entry.name in found else None)
+        if problem is not None:
+            print(f"cmat: warning: the algorithm {entry.name!r} ({entry.value}) "
+                  f"{problem.splitlines()[0]}; skipped", file=sys.stderr)
+            continue
+        found[entry.name] = value
+    return found
 
 
 def algorithm_label(algo: str, recurrent: bool | None = None) -> str:
     """The name of `algo`'s line, as its authors name it: `Sable` is the Sable paper's
     recurrent Sable; with `network.recurrent` false (`recurrent` False) it is
-    `Sable (feed-forward)`, Mava's `ff_sable`. Every other algorithm: `ALGORITHM_LABELS`."""
+    `Sable (feed-forward)`, Mava's `ff_sable`. Every other algorithm: its entry's label."""
     if algo == "sable" and recurrent is False:
         return "Sable (feed-forward)"
-    return ALGORITHM_LABELS[algo]
+    return entries()[algo].label
 
 OPTION_CAPABILITIES = {
     "network.consensus_policy": ("consensus", "deterministic"),
@@ -69,20 +100,20 @@ algorithm accepts)."""
 
 def registry() -> dict[str, type[Algorithm]]:
     """Every algorithm's class by its name (the modules imported on first use)."""
-    return {name: algorithm_class(name) for name in ALGORITHM_CLASSES}
+    return {name: algorithm_class(name) for name in entries()}
 
 
 def algorithm_names() -> tuple[str, ...]:
-    return tuple(ALGORITHM_CLASSES)
+    return tuple(entries())
 
 
 @functools.cache
 def algorithm_class(name: str) -> type[Algorithm]:
     """The class that implements the named algorithm, its module imported on first use;
     CmatError for an unknown name."""
-    if name not in ALGORITHM_CLASSES:
-        raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(ALGORITHM_CLASSES)}")
-    module_name, _, class_name = ALGORITHM_CLASSES[name].partition(":")
+    if name not in entries():
+        raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(entries())}")
+    module_name, _, class_name = entries()[name].cls.partition(":")
     cls: type[Algorithm] = getattr(importlib.import_module(module_name), class_name)
     return cls
 

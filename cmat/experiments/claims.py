@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from cmat.algorithms import ALGORITHM_LABELS
+from cmat.algorithms import algorithm_label
 from cmat.experiments.baselines import BASELINE_VARIANT
 from cmat.experiments.spec import ExperimentSpec
 from cmat.experiments.statistics import bootstrap, improvement_probability, interval, iqm, normalise
@@ -239,7 +239,7 @@ def judge_claims(
         return sum(covered({lines[x]["variant"], lines[y]["variant"]}, in_game) for y in ys)
 
     in_spec = {algo for v in spec.variants if "main" in v.figures for algo in v.algos}
-    absent = tuple(ALGORITHM_LABELS[algo] for algo in PAPER_BASELINES if algo not in in_spec)
+    absent = tuple(algorithm_label(algo) for algo in PAPER_BASELINES if algo not in in_spec)
     claims: list[Claim] = []
     for label in cmat_lines:
         budget = variant_of(label).steps
