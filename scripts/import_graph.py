@@ -15,7 +15,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parent.parent / "cmat"
 
 LAYERS = {
-    "cmat.errors": 0, "cmat.version": 0,
+    "cmat.errors": 0, "cmat.version": 0, "cmat.plugins": 0,
     "cmat.config": 1, "cmat.envs": 1,
     "cmat.networks": 2,
     "cmat.algorithms": 3,

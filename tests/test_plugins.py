@@ -54,8 +54,8 @@ def test_a_plugin_suite_is_found_configured_and_trained(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("entry", "problem"), [
     ("coins = cmat_coins:missing", "cannot be loaded"),
-    ("coins = cmat_coins:build", "is not a cmat.envs.suites.Suite"),
-    ("smax = cmat_coins:SUITE", "takes a prefix cmat has"),
+    ("coins = cmat_coins:build", "is not a cmat.envs.suites.Suite (function)"),
+    ("smax = cmat_coins:SUITE", "takes a name cmat has"),
 ])
 def test_a_broken_plugin_is_skipped_with_one_line(tmp_path: Path, entry: str,
                                                    problem: str) -> None:

@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import functools
 import importlib
-import importlib.metadata
-import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from cmat.config import PPOConfig
 from cmat.errors import CmatError
+from cmat.plugins import with_plugins
 
 if TYPE_CHECKING:
     from cmat.algorithms.base import Algorithm
@@ -56,25 +55,8 @@ ENTRY_POINTS = "cmat.algorithms"
 @functools.cache
 def entries() -> dict[str, AlgorithmEntry]:
     """Every algorithm: cmat's own (`ALGORITHMS`), then those installed packages add under
-    `ENTRY_POINTS`. A plugin that cannot be loaded, is not an `AlgorithmEntry` or takes a name
-    cmat has is skipped with a one-line warning on stderr."""
-    found = dict(ALGORITHMS)
-    for entry in sorted(importlib.metadata.entry_points(group=ENTRY_POINTS),
-                        key=lambda entry: entry.name):
-        try:
-            value = entry.load()
-        except Exception as error:  # a broken plugin must not stop cmat
-            problem: str | None = f"cannot be loaded ({type(error).__name__}: {error})"
-        else:
-            problem = (f"is not a cmat.algorithms.AlgorithmEntry ({type(value).__name__})"
-                       if not isinstance(value, AlgorithmEntry)
-                       else "takes a name cmat has" if entry.name in found else None)
-        if problem is not None:
-            print(f"cmat: warning: the algorithm {entry.name!r} ({entry.value}) "
-                  f"{problem.splitlines()[0]}; skipped", file=sys.stderr)
-            continue
-        found[entry.name] = value
-    return found
+    `ENTRY_POINTS` (cmat.plugins: a broken one is skipped with a one-line warning)."""
+    return with_plugins(ALGORITHMS, ENTRY_POINTS, AlgorithmEntry, "algorithm")
 
 
 def algorithm_label(algo: str, recurrent: bool | None = None) -> str:

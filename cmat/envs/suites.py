@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import functools
 import importlib
-import importlib.metadata
 import importlib.util
-import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 from cmat.errors import CmatError, SuiteUnavailable
+from cmat.plugins import with_plugins
 
 PAPER_BUDGET = 10_000_000
 """Env steps per seed of every task in the paper's experiments (MAT's budget)."""
@@ -179,25 +178,8 @@ ENTRY_POINTS = "cmat.suites"
 @functools.cache
 def registry() -> dict[str, Suite]:
     """Every suite: cmat's own (`SUITES`), then those installed packages add under
-    `ENTRY_POINTS`. A plugin that cannot be loaded, is not a `Suite` or takes a prefix cmat
-    has is skipped with a one-line warning on stderr."""
-    suites = dict(SUITES)
-    for entry in sorted(importlib.metadata.entry_points(group=ENTRY_POINTS),
-                        key=lambda entry: entry.name):
-        try:
-            suite = entry.load()
-        except Exception as error:  # a broken plugin must not stop cmat
-            problem: str | None = f"cannot be loaded ({type(error).__name__}: {error})"
-        else:
-            problem = (f"is not a cmat.envs.suites.Suite ({type(suite).__name__})"
-                       if not isinstance(suite, Suite)
-                       else "takes a prefix cmat has" if entry.name in suites else None)
-        if problem is not None:
-            print(f"cmat: warning: the suite {entry.name!r} ({entry.value}) "
-                  f"{problem.splitlines()[0]}; skipped", file=sys.stderr)
-            continue
-        suites[entry.name] = suite
-    return suites
+    `ENTRY_POINTS` (cmat.plugins: a broken one is skipped with a one-line warning)."""
+    return with_plugins(SUITES, ENTRY_POINTS, Suite, "suite")
 
 
 def suite_of(env_id: str) -> Suite:
