@@ -108,6 +108,7 @@ def test_a_killed_process_stops_the_other_with_one_line(tmp_path: Path, victim: 
     assert code == 2, log[-3000:]
     assert last.startswith(f"cmat: error: process {survivor} of 2"), log[-3000:]
     assert "another process of the run stopped" in last and f"--resume {run}" in last
+    assert "Check failure" not in log and "coordination_service" not in log  # no C++ log
     assert (run / "checkpoints" / "latest.ckpt").is_file()
 
 

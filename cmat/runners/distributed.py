@@ -185,7 +185,8 @@ def supervise(argv: list[str], process: str, run: Path | None) -> int:
     and return its exit status; where a signal ended it
     (the runtime's abort, the kernel's out-of-memory killer), print one line saying so instead
     of the runtime's C++ log, which the child writes to a file (`quiet_runtime_log`), and
-    return 2. The child dies with this process (Linux); Ctrl-C reaches both from the terminal,
+    return 2 (the line starts on a line of its own: the child's progress bar may have left one
+    unfinished). The child dies with this process (Linux); Ctrl-C reaches both from the terminal,
     so this process leaves it to the child, and a SIGTERM it passes on."""
     import os
     import signal
@@ -208,7 +209,7 @@ def supervise(argv: list[str], process: str, run: Path | None) -> int:
     name = signal.Signals(-code).name
     where = (f"; {run} keeps its last checkpoint: start every process again with "
              f"--resume {run}") if run is not None else ""
-    print(f"cmat: error: {process}: stopped by {name}, most likely because another process of "
+    print(f"\ncmat: error: {process}: stopped by {name}, most likely because another process of "
           f"the run stopped (or this one ran out of memory; the runtime's log: "
           f"{runtime_log_path(child.pid)}){where}", file=sys.stderr)
     return 2
