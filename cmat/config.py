@@ -25,6 +25,15 @@ CONSENSUS_SOURCES = ("mixture", "last")
 CONSENSUS_POLICIES = ("deterministic", "categorical", "gaussian")
 ITERATION_RULES = {"n": (1, 1), "n/2": (1, 2), "2n": (2, 1)}
 """m given relative to the number of agents n: name -> (numerator, denominator), m = ⌊n·a/b⌋."""
+LARGE_TEAM = 32
+"""Teams of more agents than this are large: where m is left unset (None), they get
+`LARGE_TEAM_ITERATIONS` consensus iterations instead of the paper's m = n. Every task of the
+paper (at most 27 agents) keeps m = n."""
+LARGE_TEAM_ITERATIONS = 2
+"""m for large teams, chosen from CMAT at m = 1, 2, 5 and 10 on the 100-vehicle dispatch task
+(grid-100-mid, 24,000 steps, 3 seeds; docs/dispatch.md, "Consensus iterations on a large
+fleet"): m = 2 scored highest (return 23.0 ± 0.6 against 20.7-21.5 for the others), and larger
+m did not learn better, while the decoder's cost grows with m."""
 FINETUNE_MODES = ("consensus", "action")
 JOINT_CLIPS = ("joint", "per_agent")
 ENTROPY_REDUCTIONS = ("mean", "sum")
@@ -57,8 +66,10 @@ class NetworkConfig:
     does not give it."""
     consensus_iterations: int | str | None = None
     """m, decoder iterations (eq. decoder): an integer >= 0, or 'n', 'n/2' (⌊n/2⌋) or '2n'
-    resolved against the environment's number of agents n (the paper's ablation values). None
-    means 'n' (the paper's default); 0 uses e0 alone. See `resolve_iterations`."""
+    resolved against the environment's number of agents n (the paper's ablation values). None:
+    the paper's m = n for teams of up to `LARGE_TEAM` (32) agents, `LARGE_TEAM_ITERATIONS` (2)
+    above (`--preset paper` sets 'n' for every team); 0 uses e0 alone. See
+    `resolve_iterations`."""
     consensus_source: str = "mixture"
     """'mixture': c = Actor-Compressor(e0..em) (eq. actor_compressor, the default);
     'last': c = e_m (the paper's ablation)."""
@@ -433,10 +444,13 @@ def valid_iterations(m: int | str | None) -> bool:
 
 
 def resolve_iterations(m: int | str | None, num_agents: int) -> int:
-    """The number of decoder iterations for `num_agents` agents: None and 'n' give n, 'n/2'
-    gives ⌊n/2⌋, '2n' gives 2n, an integer itself."""
+    """The number of decoder iterations for `num_agents` agents: 'n' gives n, 'n/2' gives
+    ⌊n/2⌋, '2n' gives 2n, an integer itself; None gives n up to `LARGE_TEAM` agents and
+    `LARGE_TEAM_ITERATIONS` above."""
     if isinstance(m, int) and not isinstance(m, bool):
         return m
+    if m is None and num_agents > LARGE_TEAM:
+        return LARGE_TEAM_ITERATIONS
     rule = "n" if m is None else m
     if rule not in ITERATION_RULES:
         raise CmatError(f"invalid config: network.consensus_iterations {m!r} is not an integer "

@@ -16,7 +16,7 @@ import yaml
 from cmat.algorithms.cmat import CMAT
 from cmat.algorithms.cmat_blocks import CMAT_BLOCKS, FINETUNE_TRAINABLE, with_iterations
 from cmat.cli import main
-from cmat.config import NetworkConfig, resolve_iterations
+from cmat.config import LARGE_TEAM, LARGE_TEAM_ITERATIONS, NetworkConfig, resolve_iterations
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.cmat import ConsensusDecoder
 from cmat.networks.layers import Compressor
@@ -152,6 +152,17 @@ def test_finetune_setting_is_cmat_only(tmp_path: Path, capsys: pytest.CaptureFix
 def test_iterations_relative_to_the_number_of_agents(m: object, expected: int) -> None:
     assert resolve_iterations(m, 6) == expected
     assert resolve_iterations("n/2", 5) == 2
+
+
+@pytest.mark.parametrize(("m", "agents", "expected"), [
+    (None, LARGE_TEAM, LARGE_TEAM), (None, LARGE_TEAM + 1, LARGE_TEAM_ITERATIONS),
+    (None, 1000, LARGE_TEAM_ITERATIONS), ("n", 1000, 1000), (64, 1000, 64),
+])
+def test_large_teams_default_to_a_fixed_m(m: object, agents: int, expected: int) -> None:
+    """Unset m is n up to LARGE_TEAM agents and LARGE_TEAM_ITERATIONS above; an m set
+    explicitly ('n' as in --preset paper, or a number) is kept at any size."""
+    assert resolve_iterations(m, agents) == expected
+    assert load_config(overrides=["preset=paper"]).network.consensus_iterations == "n"
 
 
 @pytest.mark.parametrize("value", ["n/2", "2n", "n", "0", "7"])
