@@ -16,8 +16,9 @@ the reason.
 
 Lines: 'cmat m=n' is the paper's default (m = number of agents), 'cmat m=5' the dispatch
 suite's large-team setting (the CMAT authors' ride-sharing code used consensus length 5 on
-1,000 vehicles); 'sable' is Sable's feed-forward variant, 'sable (recurrent)' the recurrent one
-(one decision from its initial memory); 'mat' and 'sable' decode the agents one after another,
+1,000 vehicles); 'sable' is the recurrent Sable (one decision from its initial memory), 'sable
+(feed-forward)' Mava's ff_sable (results dated before 2026-12-06 call the feed-forward one
+'sable'); 'mat' and both Sables decode the agents one after another,
 'mappo' is one MLP per agent (fully parallel).
 
 Writes DIR/decision_latency.json after each point (a run cut short keeps what it measured),
@@ -43,7 +44,7 @@ LINES = {
     "cmat m=5": ("cmat", ["network.consensus_iterations=5"]),
     "mat": ("mat", []),
     "sable": ("sable", []),
-    "sable (recurrent)": ("sable", ["network.recurrent=true"]),
+    "sable (feed-forward)": ("ff_sable", []),
     "mappo": ("mappo", []),
 }
 REFERENCE = "cmat m=5"

@@ -28,7 +28,7 @@ METHODS: dict[str, list[str]] = {
     "mappo": ["algo=mappo"],
     "happo": ["algo=happo"],
     "sable": ["algo=sable"],
-    "sable-recurrent": ["algo=sable", "network.recurrent=true"],
+    "ff_sable": ["algo=ff_sable"],
 }
 """Method label -> config overrides."""
 

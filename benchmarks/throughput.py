@@ -5,7 +5,7 @@
     python benchmarks/throughput.py --compare-algorithms  # every algorithm on 3s5z_vs_3s6z
     python benchmarks/throughput.py --compare-algorithms --algo cmat --algo mat --preset mava
     python benchmarks/throughput.py --compare-algorithms --algo sable \
-        --algo sable:network.recurrent=true        # an algorithm with its own overrides
+        --algo sable:ppo.epochs=4                    # an algorithm with its own overrides
 
 Breakdown (one process, default config but `--envs` environments): env-only steps/s (random
 legal actions in the same kind of scan), collection steps/s (CMAT acting + env, no update), full

@@ -91,16 +91,11 @@ class NetworkConfig:
     `activate`, mat/algorithms/mat/algorithm/ma_transformer.py): the action and value output
     layers, the query, key, value and output projections of every attention and the second
     layer of every feed-forward block. Layers followed by an activation keep the ReLU gain √2."""
-    recurrent: bool = False
-    """Sable only: carry the retention states across the steps of an episode (Mava's
-    rec_sable: decayed by κ each step, reset at episode starts, the timestep's sinusoidal
-    encoding added to every retention's inputs) and train on whole rollout sequences from the
-    state each began with. False: the feed-forward ff_sable, every step on its own."""
     retention_decay: float = 0.8
-    """Sable with `recurrent`: scale in [0, 1] of every head's decay κ (Mava's
-    `decay_scaling_factor`, mava/configs/network/rec_retention.yaml)."""
+    """Sable and feed-forward Sable: scale in [0, 1] of every head's decay κ (Mava's
+    `decay_scaling_factor`, mava/configs/network/rec_retention.yaml and ff_retention.yaml)."""
     retention_chunk: int | None = None
-    """Sable with `recurrent`: timesteps per chunk of the chunkwise training pass (memory
+    """Sable (the recurrent one): timesteps per chunk of the chunkwise training pass (memory
     O(chunk²) instead of O(rollout_length²); a pass's last chunk is shorter where the chunk does
     not divide its steps); None: the whole rollout in one parallel pass (Mava's default)."""
     attention_block: int = 0
@@ -217,7 +212,7 @@ class TrainConfig:
     """Keyword arguments for the environment factory (e.g. payoff for matrix games)."""
     algo: str = "cmat"
     """One of the registry's algorithms (`cmat.algorithms.entries`): cmat, mat,
-    pmat, triple_bert, happo, mappo, sable."""
+    pmat, triple_bert, happo, mappo, sable (the recurrent Sable), ff_sable."""
     total_steps: int = 200_000
     """Environment steps per seed (one step = one joint action in one environment)."""
     num_envs: int = 32
@@ -350,9 +345,9 @@ def validate(config: TrainConfig) -> TrainConfig:
          f"network.retention_decay must be in [0, 1], got {net.retention_decay}"),
         (net.retention_chunk is None or net.retention_chunk > 0,
          f"network.retention_chunk must be > 0 or null, got {net.retention_chunk}"),
-        (not net.recurrent or ppo.num_minibatches <= 0
+        (config.algo != "sable" or ppo.num_minibatches <= 0
          or config.num_envs % ppo.num_minibatches == 0,
-         f"with network.recurrent, minibatches are whole sequences: num_envs "
+         f"Sable's minibatches are whole sequences: num_envs "
          f"({config.num_envs}) must be divisible by ppo.num_minibatches "
          f"({ppo.num_minibatches})"),
         (0 < ppo.clip_eps < 1, f"ppo.clip_eps must be in (0, 1), got {ppo.clip_eps}"),
@@ -467,6 +462,12 @@ field) -> 'default', 'suite NAME', 'algorithm NAME', 'preset NAME', 'file PATH',
 NESTED_FIELDS = ("network", "ppo")
 VERSION_HEADER = "# written by cmat "
 """The first line of a config.yaml: the version of cmat that wrote it (`written_by`)."""
+LAYOUT_HEADER = "# config layout "
+CONFIG_LAYOUT = 2
+"""The layout of the config.yaml this version writes, on its second line (`LAYOUT_HEADER`).
+Layout 1 (no such line; run directories written before 2026-12-06) chose Sable's variant with
+`network.recurrent` (false: the feed-forward one); layout 2 names it by the algorithm, `sable`
+(recurrent) or `ff_sable`. `upgrade` reads layout 1."""
 
 
 def field_names() -> list[str]:
@@ -492,12 +493,12 @@ def to_yaml(config: TrainConfig, sources: ConfigSources | None = None) -> str:
     source as a comment (`lr: 5.0e-05  # suite mamujoco`)."""
     from cmat.version import __version__
 
-    header = f"{VERSION_HEADER}{__version__}\n"
+    header = f"{VERSION_HEADER}{__version__}\n{LAYOUT_HEADER}{CONFIG_LAYOUT}\n"
     if sources is None:
         dumped: str = yaml.safe_dump(asdict(config), sort_keys=False)
         return header + dumped
     lines = [
-        header.rstrip("\n"),
+        *header.splitlines(),
         "# Resolved run config. Each value's comment says where it came from: default (the",
         "# dataclasses in cmat/config.py), suite (cmat/envs/suites.py), algorithm (its",
         "# reference_defaults), preset, file, command line.",
@@ -585,10 +586,34 @@ def load_yaml(text: str) -> Any:
     return yaml.load(text, Loader=UniqueKeyLoader)
 
 
+def layout(text: str) -> int:
+    """The layout of a config.yaml (`CONFIG_LAYOUT`): its `LAYOUT_HEADER` line's, else 1."""
+    for line in text.splitlines()[:2]:
+        if line.startswith(LAYOUT_HEADER) and line.removeprefix(LAYOUT_HEADER).isdigit():
+            return int(line.removeprefix(LAYOUT_HEADER))
+    return 1
+
+
+def upgrade(loaded: Any, written_in: int) -> Any:
+    """A config mapping of layout `written_in` in today's layout (`CONFIG_LAYOUT`); raises
+    CmatError for a layout newer than this version reads."""
+    if written_in > CONFIG_LAYOUT:
+        raise CmatError(f"config layout {written_in} is newer than this cmat reads "
+                        f"({CONFIG_LAYOUT}); update cmat")
+    if written_in == 1 and isinstance(loaded, dict) and isinstance(loaded.get("network"), dict):
+        network = {k: v for k, v in loaded["network"].items() if k != "recurrent"}
+        algo = loaded.get("algo")
+        if algo == "sable" and not loaded["network"].get("recurrent", False):
+            algo = "ff_sable"
+        loaded = {**loaded, "algo": algo, "network": network}
+    return loaded
+
+
 def from_yaml(text: str) -> TrainConfig:
-    """Read a resolved config written by `to_yaml` (a run directory's config.yaml)."""
+    """Read a resolved config written by `to_yaml` (a run directory's config.yaml), of any
+    layout (`upgrade`)."""
     try:
-        loaded = load_yaml(text)
+        loaded = upgrade(load_yaml(text), layout(text))
         config = OmegaConf.to_object(
             OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.create(loaded))
         )

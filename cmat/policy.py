@@ -113,7 +113,7 @@ class Policy:
     def _stateless(self, method: str) -> None:
         if self.recurrent:
             raise CmatError(
-                f"this {self.config.algo} policy is recurrent (network.recurrent=true): it acts "
+                f"this {self.config.algo} policy is recurrent: it acts "
                 f"from a state carried across an episode's steps; use "
                 f"policy.greedy_with_memory(policy.initial_memory(), obs, ...) instead of "
                 f"policy.{method}")

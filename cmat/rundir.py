@@ -414,11 +414,15 @@ class RunDir:
         """Append rows (NaN as `nan`, missing columns empty) and sync them to disk. A new file's
         columns are COLUMNS and then every other key of the rows in the order they first give
         them (per-run diagnostics, the algorithm's own metrics, the environment's episode
-        metrics); later rows follow the header already written, keys it lacks are left out."""
+        metrics). Rows with a key the header lacks (a metric that a resumed run's new options
+        emit) first rewrite the file with that column added at the end, empty in earlier rows,
+        so that no metric is dropped."""
         buffer = io.StringIO()
         header = self.metrics_header()
-        columns = header or [*dict.fromkeys([*COLUMNS, *(key for row in rows for key in row)])]
-        writer = csv.DictWriter(buffer, columns, extrasaction="ignore", lineterminator="\n")
+        columns = [*dict.fromkeys([*(header or COLUMNS), *(key for row in rows for key in row)])]
+        if header and columns != header:
+            self.widen_metrics(columns)
+        writer = csv.DictWriter(buffer, columns, lineterminator="\n")
         if not header:
             writer.writeheader()
         writer.writerows({key: csv_value(value) for key, value in row.items()} for row in rows)
@@ -426,6 +430,16 @@ class RunDir:
             file.write(buffer.getvalue())
             file.flush()
             os.fsync(file.fileno())
+
+    def widen_metrics(self, columns: list[str]) -> None:
+        """Rewrite metrics.csv (atomically) under `columns`, a header that extends its own."""
+        with self.metrics_path.open(newline="") as file:
+            rows = list(csv.DictReader(file))
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, columns, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        atomic_write(self.metrics_path, buffer.getvalue().encode())
 
     def metrics_header(self) -> list[str]:
         """The columns of an existing metrics.csv (empty if there is none yet)."""

@@ -253,7 +253,7 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
         (["--env", "matrix:fig1", "--set", "rollout_length=0"], "rollout_length must be > 0"),
         (["--env", "matrix:fig1", "--set", "ppo.num_minibatches=0"],
          "ppo.num_minibatches must be > 0, got 0"),
-        (["--env", "matrix:fig1", "--set", "ppo.num_minibatches=0", "network.recurrent=true"],
+        (["--env", "matrix:fig1", "--algo", "sable", "--set", "ppo.num_minibatches=0"],
          "ppo.num_minibatches must be > 0, got 0"),
         (["--env", "matrix:fig1", "--algo", "nope"], "unknown algorithm 'nope'"),
         (["--env", "smax: 3m"], "unknown SMAX scenario ' 3m'"),

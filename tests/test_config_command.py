@@ -54,7 +54,7 @@ def test_each_registered_name_is_its_class_name() -> None:
 CHANGED_NETWORK_FIELDS = {
     "n_embd": 32, "n_head": 2, "n_block": 2, "compressor_heads": 2, "consensus_iterations": 1,
     "consensus_source": "last", "consensus_policy": "categorical", "consensus_codes": 4,
-    "latent_head_gain": 0.5, "init_gain": 0.5, "log_std_init": 0.0, "recurrent": True,
+    "latent_head_gain": 0.5, "init_gain": 0.5, "log_std_init": 0.0,
     "retention_decay": 0.5, "retention_chunk": 1, "mlp_layers": 3, "attention_block": 1,
 }
 
@@ -94,8 +94,7 @@ def test_config_marks_the_network_fields_an_algorithm_does_not_read(
     assert main(["config", "--algo", "cmat"]) == 0
     unread = [line.split(" = ")[0] for line in capsys.readouterr().out.splitlines()
               if "not read by cmat" in line]
-    assert unread == ["network.mlp_layers", "network.recurrent", "network.retention_decay",
-                      "network.retention_chunk"]
+    assert unread == ["network.mlp_layers", "network.retention_decay", "network.retention_chunk"]
 
 
 def test_explain_lists_every_layer_of_a_key_and_the_last_wins(

@@ -258,18 +258,16 @@ def test_cmat_train_on_a_dispatch_task(tmp_path: Path, capsys: pytest.CaptureFix
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", [*algorithm_names(), "sable:recurrent"])
+@pytest.mark.parametrize("algo", algorithm_names())
 def test_every_algorithm_trains_on_a_dispatch_task(tmp_path: Path, algo: str) -> None:
-    """One update of each learning algorithm (and recurrent Sable) on a 12-vehicle fleet: the
-    run completes with finite losses and the operator's metrics in its evaluation rows. Slow
-    suite: compiling the seven programs takes 3-6 minutes on 2 cores (cmat and mappo train on
-    dispatch in the fast suite above)."""
-    name, _, variant = algo.partition(":")
+    """One update of each learning algorithm on a 12-vehicle fleet: the run completes with
+    finite losses and the operator's metrics in its evaluation rows. Slow suite: compiling the
+    eight programs takes 3-6 minutes on 2 cores (cmat and mappo train on dispatch in the fast
+    suite above)."""
     out = tmp_path / "run"
-    extra = ["network.recurrent=true"] if variant else []
-    assert main(["train", "--env", "dispatch:grid-12-mid", "--algo", name, "--steps", "20",
+    assert main(["train", "--env", "dispatch:grid-12-mid", "--algo", algo, "--steps", "20",
                  "--set", "env_kwargs.grid_size=4", "env_kwargs.episode_minutes=10",
-                 "eval_episodes=1", "num_envs=2", "rollout_length=10", *extra,
+                 "eval_episodes=1", "num_envs=2", "rollout_length=10",
                  "--out", str(out)]) == 0
     rows = list(csv.DictReader((out / "metrics.csv").open()))
     train = [row for row in rows if row["kind"] == "train"]

@@ -49,6 +49,8 @@ REFERENCE = {
     "pmat": (1.0, True, True),
     "mappo": (1.0, True, False),
     "happo": (1.0, True, False),
+    "sable": (1.0, False, True),
+    "ff_sable": (1.0, False, True),
 }
 """algo -> (ppo.target_tau, ppo.active_masks, ppo.per_agent_gae) of its reference (CMAT: its
 default, the learning-speed study's setting)."""

@@ -258,7 +258,7 @@ def test_a_recurrent_policys_loop_with_memory_scores_what_evaluation_scores() ->
     greedy evaluation of seed 6 exactly; the stateless `greedy` and `act` refuse it."""
     config = load_config(overrides=[
         "env=mpe:simple_spread", "env_kwargs.max_steps=6", "algo=sable",
-        "network.recurrent=true", "network.n_embd=16", "num_envs=4", "rollout_length=16",
+        "network.n_embd=16", "num_envs=4", "rollout_length=16",
         "seeds=2", "seed=5", "ppo.num_minibatches=2",
     ])
     trainer = JaxTrainer(config)
@@ -273,7 +273,7 @@ def test_a_recurrent_policys_loop_with_memory_scores_what_evaluation_scores() ->
     reset_key, rng = jax.random.split(rng)
     env_state, step = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
     for method in (policy.greedy, policy.act):
-        with pytest.raises(CmatError, match=r"recurrent .*greedy_with_memory"):
+        with pytest.raises(CmatError, match=r"recurrent: .*greedy_with_memory"):
             method(step.obs, step.action_mask)
     memory = policy.initial_memory(episodes)
     returns, finished = np.zeros(episodes), np.zeros(episodes, bool)

@@ -45,6 +45,7 @@ ALGORITHMS = {
     "happo": AlgorithmEntry("HAPPO", "cmat.algorithms.happo:HAPPO"),
     "mappo": AlgorithmEntry("MAPPO", "cmat.algorithms.mappo:MAPPO"),
     "sable": AlgorithmEntry("Sable", "cmat.algorithms.sable:Sable"),
+    "ff_sable": AlgorithmEntry("Sable (feed-forward)", "cmat.algorithms.sable:FFSable"),
 }
 """The algorithms cmat ships, in the order `cmat config` and error messages list them."""
 
@@ -59,20 +60,17 @@ def entries() -> dict[str, AlgorithmEntry]:
     return with_plugins(ALGORITHMS, ENTRY_POINTS, AlgorithmEntry, "algorithm")
 
 
-def algorithm_label(algo: str, recurrent: bool | None = None) -> str:
-    """The name of `algo`'s line, as its authors name it: `Sable` is the Sable paper's
-    recurrent Sable; with `network.recurrent` false (`recurrent` False) it is
-    `Sable (feed-forward)`, Mava's `ff_sable`. Every other algorithm: its entry's label."""
-    if algo == "sable" and recurrent is False:
-        return "Sable (feed-forward)"
+def algorithm_label(algo: str) -> str:
+    """The name of `algo`'s line, as its authors name it (its entry's label): `Sable` is the
+    Sable paper's recurrent Sable, `Sable (feed-forward)` Mava's `ff_sable`."""
     return entries()[algo].label
+
 
 OPTION_CAPABILITIES = {
     "network.consensus_policy": ("consensus", "deterministic"),
     "ppo.joint_clip": ("joint_ratio", "joint"),
     "ppo.entropy_reduction": ("joint_ratio", "mean"),
     "ppo.per_agent_gae": ("per_agent_values", False),
-    "network.recurrent": ("recurrent", False),
     "ppo.minibatch_chunks": ("minibatch_chunks", 1),
     "ppo.order_in_loss": ("sampled_order", "sampled"),
 }

@@ -110,7 +110,7 @@ class Algorithm(Protocol):
 
     capabilities: ClassVar[frozenset[str]]
     """What the algorithm has of `cmat.algorithms.OPTION_CAPABILITIES`: 'consensus',
-    'joint_ratio', 'per_agent_values', 'recurrent', 'minibatch_chunks',
+    'joint_ratio', 'per_agent_values', 'minibatch_chunks',
     'sampled_order'; the options that need one are rejected without it. 'minibatch_chunks'
     promises a loss whose reductions over the minibatch are means with parameter-independent
     denominators, so that without active masks equal slices' losses average to the

@@ -91,7 +91,7 @@ class CMAT(PPOAlgorithm):
     )
     network_fields: ClassVar[tuple[str, ...]] = tuple(
         f.name for f in fields(NetworkConfig)
-        if f.name not in ("mlp_layers", "recurrent", "retention_decay", "retention_chunk")
+        if f.name not in ("mlp_layers", "retention_decay", "retention_chunk")
     )
     """Every `NetworkConfig` field but the MLP baselines' depth and Sable's retention options."""
 

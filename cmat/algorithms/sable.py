@@ -1,31 +1,38 @@
 """Sable (Mahjoub et al., ICML 2025): MAT's autoregressive PPO on a retention network.
 
 Acting, values and the per-agent clipped objective are MAT's (cmat.algorithms.mat), on
-`cmat.networks.sable.SableNetwork`. What the reference (instadeepai/Mava,
-mava/systems/sable/anakin/ff_sable.py) does differently, and cmat does with it:
+`cmat.networks.sable.SableNetwork`. `sable` is the Sable paper's Sable, the recurrent one
+(Mava's `rec_sable`, mava/systems/sable/anakin/rec_sable.py): the retention states are carried
+from step to step of an episode (decayed by κ, reset at episode starts, `SableCarry`), the
+timestep within the episode is encoded into every retention, and the update trains on whole
+rollout sequences of each environment, from the state it had before the rollout: minibatches
+are sets of environments, the chunkwise form of retention computes each sequence
+(`network.retention_chunk`; None, the whole rollout at once, is Mava's
+`timestep_chunk_size: ~`). `ff_sable` (`FFSable`) is Mava's feed-forward Sable
+(mava/systems/sable/anakin/ff_sable.py): every step starts from empty states.
+
+What both references do differently from MAT, and cmat does with them:
 
 - Every epoch permutes the agents of the whole batch with one random permutation, so the
   decoder is trained along a new agent order each epoch while acting keeps the index order; the
-  stored log-probs stay those of acting (`permute_agents`).
+  stored log-probs stay those of acting (`permute_agents`; the carried state stays the one
+  acting produced).
 - Advantages are normalised per minibatch over all agents, not per update
   (`ppo.normalize_advantages` is off and the loss normalises).
 - Per-agent values and GAE with the team reward, squared-error value loss (½·MSE, clipped with
-  `clip_eps`, weight 0.5), no value normalisation, no active masks, lr 2.5e-4, 4 epochs of
-  2 minibatches, clip 0.2, gradient norm 0.5 (mava/configs/system/sable/ff_sable.yaml); one block
-  of width 64 with one head (mava/configs/network/ff_retention.yaml).
+  `clip_eps`, weight 0.5), no value normalisation, no active masks; one block of width 64 with
+  one head, decay scale 0.8 (mava/configs/network/rec_retention.yaml, ff_retention.yaml).
+
+Their PPO settings differ: `sable` runs mava/configs/system/sable/rec_sable.yaml (instadeepai/
+Mava at 18c0f2d): lr 5e-4, 10 epochs of one minibatch, clip 0.2, gradient norm 10; `ff_sable`
+runs ff_sable.yaml (b53e2de): lr 2.5e-4, 4 epochs of 2 minibatches, clip 0.2, gradient norm
+0.5. Mava uses these on every environment; the Sable paper's per-task tuned values are not
+published in a form this project has, so no task overrides them (docs/algorithms.md).
 
 Rollout length and number of environments stay the suite's (SMAX: 100 steps × 32 envs) so that
 Sable and the other methods collect the same batches; the reference's 128 steps × 16 envs × 2
 vectorised updates per device is the same 4,096-sample batch split into two gradient steps.
 Continuous actions use cmat's Gaussian head (MAT's), not the reference's tanh-squashed Normal.
-
-`network.recurrent` selects the recurrent variant (`rec_sable`, mava/systems/sable/anakin/
-rec_sable.py): the retention states are carried from step to step of an episode (decayed by κ,
-reset at episode starts, `SableCarry`), the timestep within the episode is encoded into every
-retention, and the update trains on whole rollout sequences of each environment, from the
-state it had before the rollout: minibatches are sets of environments, the chunkwise form of
-retention computes each sequence (`network.retention_chunk`). Agents are permuted per epoch in
-both variants, as in both references (the carried state stays the one acting produced).
 """
 
 from __future__ import annotations
@@ -113,13 +120,16 @@ def flatten_sequences(batch: Batch) -> Batch:
 
 @dataclass(frozen=True)
 class Sable(MAT):
+    """The recurrent Sable (`memory` True), and through `FFSable` the feed-forward one."""
+
     network: SableNetwork
 
     name: ClassVar[str] = "sable"
-    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values", "recurrent"})
+    memory: ClassVar[bool] = True
+    """Whether the retention states carry across an episode's steps (module docstring)."""
+    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
     network_fields: ClassVar[tuple[str, ...]] = (
-        "n_embd", "n_head", "n_block", "log_std_init", "recurrent", "retention_decay",
-        "retention_chunk",
+        "n_embd", "n_head", "n_block", "log_std_init", "retention_decay", "retention_chunk",
     )
     """The retention encoder-decoder's sizes and its memory (SableNetwork)."""
 
@@ -129,13 +139,13 @@ class Sable(MAT):
 
     reference_defaults: ClassVar[dict[str, Any]] = {
         "ppo": {
-            "lr": 2.5e-4, "epochs": 4, "num_minibatches": 2, "clip_eps": 0.2, "ent_coef": 0.01,
-            "value_coef": 0.5, "max_grad_norm": 0.5, "target_tau": 1.0, "active_masks": False,
+            "lr": 5e-4, "epochs": 10, "num_minibatches": 1, "clip_eps": 0.2, "ent_coef": 0.01,
+            "value_coef": 0.5, "max_grad_norm": 10.0, "target_tau": 1.0, "active_masks": False,
             "per_agent_gae": True, "value_norm": False, "huber_loss": False,
             "clipped_value_loss": True, "normalize_advantages": False,
         },
     }
-    """Mava's ff_sable system and network configs (module docstring)."""
+    """Mava's rec_sable system and network configs (module docstring)."""
 
     @classmethod
     def build(
@@ -143,7 +153,7 @@ class Sable(MAT):
     ) -> Sable:
         ppo = ppo if ppo is not None else PPOConfig()
         network = SableNetwork(
-            config, spec.num_agents, spec.action_dim, spec.discrete, memory=config.recurrent,
+            config, spec.num_agents, spec.action_dim, spec.discrete, memory=cls.memory,
             decay_scale=config.retention_decay, chunk_steps=config.retention_chunk,
         )
         return cls(network, ppo.per_agent_gae)
@@ -250,3 +260,20 @@ class Sable(MAT):
         return minibatch_sgd(
             self.loss, optimizer, params, opt_state, batch, rng, ppo, permute_agents
         )
+
+
+class FFSable(Sable):
+    """Mava's feed-forward Sable (`ff_sable`): every step from empty retention states."""
+
+    name: ClassVar[str] = "ff_sable"
+    memory: ClassVar[bool] = False
+    network_fields: ClassVar[tuple[str, ...]] = (
+        "n_embd", "n_head", "n_block", "log_std_init", "retention_decay",
+    )
+    """The retention encoder-decoder's sizes (SableNetwork without memory)."""
+
+    reference_defaults: ClassVar[dict[str, Any]] = {
+        "ppo": {**Sable.reference_defaults["ppo"], "lr": 2.5e-4, "epochs": 4,
+                "num_minibatches": 2, "max_grad_norm": 0.5},
+    }
+    """Mava's ff_sable system and network configs (module docstring)."""

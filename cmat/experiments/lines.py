@@ -74,10 +74,8 @@ def collect_lines(plan: Plan) -> dict[str, list[Line]]:
                 if not runs:
                     continue
                 rows = [row for run in runs for row in RunDir(run.path).read_metrics()]
-                config = runs[0].config
-                label = variant.line_label(algo, config.network.recurrent if config else None)
                 lines.setdefault(env.id, []).append(
-                    Line(label, variant.name, algo, variant.figures, runs, rows))
+                    Line(variant.line_label(algo), variant.name, algo, variant.figures, runs, rows))
     return lines
 
 

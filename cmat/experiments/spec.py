@@ -61,10 +61,9 @@ class Variant:
     def covers(self, env_id: str) -> bool:
         return self.envs is None or env_id in self.envs
 
-    def line_label(self, algo: str, recurrent: bool | None = None) -> str:
-        """The legend entry of this variant's `algo` runs (`algorithm_label`; `recurrent`: their
-        `network.recurrent`, which names a Sable line)."""
-        name = algorithm_label(algo, recurrent)
+    def line_label(self, algo: str) -> str:
+        """The legend entry of this variant's `algo` runs (`algorithm_label`)."""
+        name = algorithm_label(algo)
         if self.label is None:
             return name if self.name == "default" else f"{name} ({self.name})"
         return self.label if len(self.algos) == 1 else f"{name} {self.label}"
