@@ -24,6 +24,8 @@ from cmat.experiments.markdown import claims_section, compute_text
 from cmat.experiments.report import compute_totals
 from cmat.experiments.spec import ExperimentSpec, load_spec
 
+pytestmark = pytest.mark.unit
+
 TASKS = ("matrix:fig1", "smax:3m", "smax:2s3z")
 STRONG, WEAK, MIDDLE = [0.9, 0.95, 1.0], [0.1, 0.2, 0.3], [0.5, 0.6, 0.55]
 

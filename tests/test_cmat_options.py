@@ -46,6 +46,7 @@ def cmat_batch():
     return (algorithm, *batch_for(algorithm))
 
 
+@pytest.mark.unit
 def test_paper_options_give_the_papers_loss(cmat_batch) -> None:
     """Defaults: the clipped objective on the joint ratio with [1−ε, 1+ε] and the mean entropy."""
     algorithm, params, batch = cmat_batch
@@ -60,6 +61,7 @@ def test_paper_options_give_the_papers_loss(cmat_batch) -> None:
         float(np.asarray(distribution.entropy()).mean()), rel=1e-6)
 
 
+@pytest.mark.unit
 def test_per_agent_joint_clip_widens_the_range_to_the_kth_power(cmat_batch) -> None:
     algorithm, params, batch = cmat_batch
     ppo = dataclasses.replace(PPOConfig(), joint_clip="per_agent")
@@ -78,6 +80,7 @@ def test_per_agent_joint_clip_widens_the_range_to_the_kth_power(cmat_batch) -> N
     assert float(metrics["entropy"]) == pytest.approx(float(entropy))
 
 
+@pytest.mark.unit
 def test_one_agent_per_agent_clip_is_the_papers_clip() -> None:
     log_ratio = jnp.linspace(-0.3, 0.3, 13)
     advantages = jnp.sign(jnp.sin(jnp.arange(13.0)))
@@ -87,6 +90,7 @@ def test_one_agent_per_agent_clip_is_the_papers_clip() -> None:
     assert float(scaled) == pytest.approx(float(paper), rel=1e-6)
 
 
+@pytest.mark.unit
 def test_entropy_sum_is_the_joint_policys_entropy(cmat_batch) -> None:
     algorithm, params, batch = cmat_batch
     loss = jax.jit(algorithm.loss, static_argnums=2)
@@ -150,6 +154,7 @@ def value(config, dotted: str):
     return config
 
 
+@pytest.mark.unit
 def test_the_paper_preset_resolves_to_the_papers_values() -> None:
     config = load_config(overrides=["preset=paper", "env=smax:6h_vs_8z"])
     assert config.preset == "paper"
@@ -162,6 +167,7 @@ def test_the_paper_preset_resolves_to_the_papers_values() -> None:
         load_config(overrides=["preset=fast"])
 
 
+@pytest.mark.unit
 def test_the_paper_preset_takes_mats_column_of_the_suite() -> None:
     mujoco = load_config(overrides=["preset=paper", "env=mamujoco:HalfCheetah-6x1"])
     assert (mujoco.ppo.lr, mujoco.ppo.epochs, mujoco.ppo.num_minibatches) == (5e-5, 10, 40)
@@ -171,6 +177,7 @@ def test_the_paper_preset_takes_mats_column_of_the_suite() -> None:
     assert (football.rollout_length, football.ppo.epochs, football.num_envs) == (200, 10, 8)
 
 
+@pytest.mark.unit
 def test_cmats_default_is_the_tuned_setting_and_differs_from_the_papers_clip_and_tau() -> None:
     default, tuned = load_config(), load_config(overrides=["preset=tuned"])
     assert (default.ppo.joint_clip, default.ppo.target_tau) == ("per_agent", 1.0)
@@ -186,6 +193,7 @@ def test_cmats_default_is_the_tuned_setting_and_differs_from_the_papers_clip_and
         load_config(overrides=["preset=tuned", "algo=mat"])
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("override", ["ppo.joint_clip=geometric", "ppo.entropy_reduction=max",
                                       "ppo.target_kl=0", "ppo.target_kl=-1"])
 def test_bad_option_values_are_rejected(override: str) -> None:
@@ -193,6 +201,7 @@ def test_bad_option_values_are_rejected(override: str) -> None:
         load_config(overrides=[override])
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("algo", ["mat", "mappo"])
 def test_joint_options_are_for_joint_ratio_algorithms(algo: str) -> None:
     with pytest.raises(CmatError, match="joint-ratio"):

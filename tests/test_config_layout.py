@@ -29,6 +29,7 @@ def layout_1(config: TrainConfig, **network: object) -> str:
     ("sable", False, "ff_sable"), ("sable", True, "sable"), ("cmat", False, "cmat"),
     ("mappo", True, "mappo"),
 ])
+@pytest.mark.unit
 def test_a_layout_1_config_reads_as_todays(algo: str, recurrent: bool, now: str) -> None:
     text = layout_1(TrainConfig(algo=algo), recurrent=recurrent)
     assert layout(text) == 1
@@ -38,6 +39,7 @@ def test_a_layout_1_config_reads_as_todays(algo: str, recurrent: bool, now: str)
     assert layout(to_yaml(config)) == CONFIG_LAYOUT
 
 
+@pytest.mark.unit
 def test_a_newer_layout_is_one_line_naming_both_layouts() -> None:
     text = to_yaml(TrainConfig()).replace(f"# config layout {CONFIG_LAYOUT}",
                                           f"# config layout {CONFIG_LAYOUT + 1}")

@@ -59,12 +59,14 @@ def busy_env() -> DispatchEnv:
     return make_task("grid-30-high", grid_size=4, episode_minutes=40)
 
 
+@pytest.mark.unit
 def test_the_env_keeps_the_protocol_and_its_state_checkpoints(busy_env: DispatchEnv) -> None:
     check_marl_env(busy_env, "dispatch:grid-30-high")
     spec = busy_env.spec
     assert (spec.num_agents, spec.action_dim, spec.max_episode_steps) == (30, 1 + 5 + 4, 40)
 
 
+@pytest.mark.unit
 def test_every_order_is_served_expired_open_or_dropped(busy_env: DispatchEnv) -> None:
     states, timesteps = rollout(busy_env, jax.random.PRNGKey(0), 40)
     s = states.stats
@@ -76,6 +78,7 @@ def test_every_order_is_served_expired_open_or_dropped(busy_env: DispatchEnv) ->
     assert bool(timesteps.done[-1].all()) and not bool(timesteps.done[:-1].any())
 
 
+@pytest.mark.unit
 def test_busy_vehicles_cannot_take_orders_and_claims_never_share_an_order(
         busy_env: DispatchEnv) -> None:
     states, _ = rollout(busy_env, jax.random.PRNGKey(1), 6)
@@ -100,6 +103,7 @@ def test_busy_vehicles_cannot_take_orders_and_claims_never_share_an_order(
         assert taken[rivals].tolist() == [r == winner for r in rivals]
 
 
+@pytest.mark.unit
 def test_masked_actions_are_stays(busy_env: DispatchEnv) -> None:
     states, timesteps = rollout(busy_env, jax.random.PRNGKey(3), 6)
     state = jax.tree.map(lambda x: x[-1, 0], states)
@@ -114,6 +118,7 @@ def test_masked_actions_are_stays(busy_env: DispatchEnv) -> None:
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.unit
 def test_demand_matches_the_tables_rates() -> None:
     env = make_task("manhattan-200-mid", episode_minutes=30, start_window=0.0)
     states, _ = rollout(env, jax.random.PRNGKey(5), 30)
@@ -136,6 +141,7 @@ def test_demand_matches_the_tables_rates() -> None:
     assert scipy_stats.chisquare(observed, wanted).pvalue > 1e-4
 
 
+@pytest.mark.unit
 def test_the_rate_is_the_demand_level_per_vehicle_hour() -> None:
     for name, per_hour in (("grid-100-low", 1.5), ("manhattan-250-high", 5.0)):
         env = make_task(name)
@@ -166,6 +172,7 @@ def plan_value(actions: np.ndarray, candidates: np.ndarray, pickup: np.ndarray,
     return int(orders.size), int(pickup[taking, k].sum())
 
 
+@pytest.mark.unit
 def test_hungarian_equals_brute_force_and_greedy_is_legal() -> None:
     rng = np.random.default_rng(0)
     for _ in range(60):
@@ -179,6 +186,7 @@ def test_hungarian_equals_brute_force_and_greedy_is_legal() -> None:
         plan_value(greedy_plan(candidates, pickup, ok, waited), candidates, pickup, ok)
 
 
+@pytest.mark.unit
 def test_episode_metrics_from_counts() -> None:
     stats = DispatchStats(
         generated=np.array(10), served=np.array(8), expired=np.array(1), dropped=np.array(0),
@@ -194,6 +202,7 @@ def test_episode_metrics_from_counts() -> None:
     assert metrics["conflicts_per_step"] == pytest.approx(1.0)
 
 
+@pytest.mark.unit
 def test_matching_baselines_beat_random_and_never_conflict() -> None:
     env = make_task("grid-40-high", grid_size=5, episode_minutes=30)
     results = {policy: evaluate(env, policy, episodes=4, seed=7)
@@ -215,6 +224,7 @@ def test_matching_baselines_beat_random_and_never_conflict() -> None:
     ("dispatch:manhattan-10-mid", {"hot_spots": 2}, "belongs to the grid city"),
     ("dispatch:grid-10-mid", {"seats": 2}, "unknown option 'seats'"),
 ])
+@pytest.mark.unit
 def test_bad_tasks_and_options_are_one_line_errors(env_id: str, kwargs: dict[str, object],
                                                    message: str) -> None:
     with pytest.raises(CmatError, match=message) as error:
@@ -222,6 +232,7 @@ def test_bad_tasks_and_options_are_one_line_errors(env_id: str, kwargs: dict[str
     assert "\n" not in str(error.value)
 
 
+@pytest.mark.unit
 def test_a_missing_or_corrupt_table_is_a_one_line_error(tmp_path: Path) -> None:
     with pytest.raises(CmatError, match="is missing"):
         manhattan_city(tmp_path / "absent.npz")
@@ -236,6 +247,7 @@ def test_a_missing_or_corrupt_table_is_a_one_line_error(tmp_path: Path) -> None:
         manhattan_city(wrong)
 
 
+@pytest.mark.unit
 def test_grid_city_neighbours_are_adjacent_zones() -> None:
     city = grid_city(size=4)
     travel = city.travel_minutes[0]
@@ -329,6 +341,7 @@ def test_mappo_learns_to_beat_random_dispatch_on_a_small_fleet() -> None:
     assert trained > random + 2.0, (trained, random)
 
 
+@pytest.mark.unit
 def test_episode_metrics_average_over_the_episodes_that_define_them() -> None:
     from cmat.envs.protocol import EnvSpec
     from cmat.runners.evaluation import tally_result, tally_start, tally_step

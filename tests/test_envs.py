@@ -14,7 +14,7 @@ from cmat.envs import MarlEnv, TimeStep, make_env
 from cmat.envs.jaxmarl_envs import SMAX_SCENARIOS, SmaxEnv
 from cmat.errors import CmatError
 
-pytestmark = pytest.mark.quick_compiles
+pytestmark = [pytest.mark.unit, pytest.mark.quick_compiles]
 
 NUM_ENVS = 8
 NUM_STEPS = 150

@@ -52,6 +52,7 @@ def test_every_emitted_metric_reaches_metrics_csv(
         assert any("order" in name for name in names), sorted(names)
 
 
+@pytest.mark.unit
 def test_a_metric_that_appears_later_widens_the_header(tmp_path: Path) -> None:
     run = RunDir(tmp_path)
     run.append_metrics([{"kind": "train", "seed": 0, "env_steps": 10, "loss": 1.5}])

@@ -32,6 +32,7 @@ def build(discrete: bool, **network: object) -> tuple[CMAT, object, jax.Array, j
     return algorithm, params, obs, mask
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("discrete", [True, False])
 def test_permuting_agents_permutes_policies_and_keeps_value_and_consensus(discrete: bool) -> None:
     algorithm, params, obs, mask = build(discrete)
@@ -55,12 +56,14 @@ def test_permuting_agents_permutes_policies_and_keeps_value_and_consensus(discre
     )
 
 
+@pytest.mark.unit
 def test_different_observations_change_the_consensus() -> None:
     algorithm, params, obs, mask = build(True)
     out = jax.jit(algorithm.network.apply)(params, obs, mask)
     assert not np.allclose(out.consensus[0], out.consensus[1])
 
 
+@pytest.mark.unit
 def test_masked_actions_have_zero_probability_and_are_never_sampled() -> None:
     algorithm, params, obs, mask = build(True)
     keys = jax.random.split(jax.random.PRNGKey(4), 2000)
@@ -75,6 +78,7 @@ def test_masked_actions_have_zero_probability_and_are_never_sampled() -> None:
     assert np.isfinite(float(jnp.sum(distribution.entropy())))
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("causal", [False, True])
 def test_attention_matches_flax_reference_attention(causal: bool) -> None:
     attention = MultiHeadAttention(n_embd=16, n_head=4)
@@ -98,6 +102,7 @@ def test_attention_matches_flax_reference_attention(causal: bool) -> None:
     np.testing.assert_allclose(output, reference, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.unit
 def test_decoder_cache_matches_full_causal_pass() -> None:
     block = DecoderBlock(n_embd=16, n_head=2)
     tokens = jax.random.normal(jax.random.PRNGKey(0), (2, 6, 16))
@@ -116,6 +121,7 @@ def test_decoder_cache_matches_full_causal_pass() -> None:
     np.testing.assert_allclose(cached, full, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.unit
 def test_shared_input_dense_equals_a_dense_layer_on_the_concatenation() -> None:
     tokens = jax.random.normal(jax.random.PRNGKey(3), (2, N_AGENTS, 6))
     shared = jax.random.normal(jax.random.PRNGKey(4), (2, 4))
@@ -146,6 +152,7 @@ def test_iterations_and_consensus_source_change_the_output() -> None:
         assert not np.allclose(outputs[other].action_params, outputs["default"].action_params)
 
 
+@pytest.mark.unit
 def test_m_zero_uses_e0_alone() -> None:
     algorithm, params, obs, mask = build(True, consensus_iterations=0)
     assert "decoder" not in params["params"]
@@ -175,6 +182,7 @@ def test_scanned_consensus_iterations_equal_unrolled_ones(iterations: int) -> No
         np.testing.assert_allclose(scanned_grad, unrolled_grad, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.unit
 def test_a_scanned_decoder_keeps_order_independence() -> None:
     """m above SCAN_ITERATIONS: permuting the agents permutes the policies and keeps the
     value and the consensus."""
@@ -215,6 +223,7 @@ def test_blockwise_attention_is_full_attention_in_value_and_gradient(
                                blocked.apply(params, obs)[:, order], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.unit
 def test_blockwise_attention_masks_keys_as_full_attention_does() -> None:
     from cmat.networks.layers import blockwise_attention
 

@@ -9,6 +9,8 @@ import pytest
 from cmat.algorithms import ppo
 from cmat.config import PPOConfig
 
+pytestmark = pytest.mark.unit
+
 
 def plain_gae(rewards, values, dones, last_value, gamma, lam):
     advantages = np.zeros_like(rewards)

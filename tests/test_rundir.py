@@ -36,6 +36,7 @@ def eval_rows(steps: list[int], seeds: int, win_rate: bool) -> list[dict]:
     ]
 
 
+@pytest.mark.unit
 def test_create_writes_config_that_reads_back(tmp_path: Path) -> None:
     config = TrainConfig(env="smax:3m", seeds=3, total_steps=1234)
     run = RunDir.create(tmp_path / "a" / "b", config)
@@ -43,6 +44,7 @@ def test_create_writes_config_that_reads_back(tmp_path: Path) -> None:
     assert RunDir.open(run.path).config() == config
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("dropped", ["ppo.order_in_loss", "network.n_block", "eval_episodes"])
 def test_a_field_the_runs_config_lacks_is_marked_as_its_default_on_resume(
     tmp_path: Path, dropped: str
@@ -71,6 +73,7 @@ def test_a_field_the_runs_config_lacks_is_marked_as_its_default_on_resume(
     ("config.yaml", "already holds a run; use --resume"),
     ("metrics.csv", "holds a metrics.csv but no config.yaml .* use another --out"),
 ])
+@pytest.mark.unit
 def test_create_refuses_a_directory_holding_a_run(
     tmp_path: Path, existing: str, message: str
 ) -> None:
@@ -107,6 +110,7 @@ def lock_held_elsewhere(run: Path) -> Iterator[int]:
         holder.wait()
 
 
+@pytest.mark.unit
 def test_one_process_at_a_time_holds_a_runs_training_lock(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path / "run", TrainConfig())
     with (lock_held_elsewhere(run.path) as pid,
@@ -120,23 +124,27 @@ def test_one_process_at_a_time_holds_a_runs_training_lock(tmp_path: Path) -> Non
         pass
 
 
+@pytest.mark.unit
 def test_open_of_a_file_names_the_mistake(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path / "run", TrainConfig())
     with pytest.raises(CmatError, match=r"config.yaml is a file; give the run's directory"):
         RunDir.open(run.config_path)
 
 
+@pytest.mark.unit
 def test_create_accepts_an_existing_directory_without_a_run(tmp_path: Path) -> None:
     (tmp_path / "notes.txt").write_text("x")
     RunDir.create(tmp_path, TrainConfig())
     assert (tmp_path / "config.yaml").is_file()
 
 
+@pytest.mark.unit
 def test_open_without_config_is_an_error(tmp_path: Path) -> None:
     with pytest.raises(CmatError, match="holds no run"):
         RunDir.open(tmp_path)
 
 
+@pytest.mark.unit
 def test_checkpoint_round_trip_leaves_no_temporary_files(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path, TrainConfig())
     with pytest.raises(CmatError, match=f"no checkpoint in {tmp_path}"):
@@ -148,6 +156,7 @@ def test_checkpoint_round_trip_leaves_no_temporary_files(tmp_path: Path) -> None
     assert [p.name for p in run.checkpoint_path.parent.iterdir()] == ["latest.ckpt"]
 
 
+@pytest.mark.unit
 def test_failed_checkpoint_write_keeps_the_previous_one(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -175,6 +184,7 @@ def test_failed_checkpoint_write_keeps_the_previous_one(
         (lambda raw: raw.replace(b'"size"', b'"sise"'), "unreadable header"),
     ],
 )
+@pytest.mark.unit
 def test_damaged_checkpoint_is_reported(tmp_path: Path, damage, reason: str) -> None:
     run = RunDir.create(tmp_path, TrainConfig())
     run.save_checkpoint(b"state bytes" * 100, 42)
@@ -183,6 +193,7 @@ def test_damaged_checkpoint_is_reported(tmp_path: Path, damage, reason: str) -> 
         run.load_checkpoint()
 
 
+@pytest.mark.unit
 def test_metrics_rows_append_with_nan_as_nan(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path, TrainConfig())
     run.append_metrics([{"kind": "train", "seed": 0, "env_steps": 100, "episode_return": math.nan,
@@ -198,6 +209,7 @@ def test_metrics_rows_append_with_nan_as_nan(tmp_path: Path) -> None:
     assert rows[1]["win_rate"] == "nan" and rows[1]["value_loss"] == ""
 
 
+@pytest.mark.unit
 def test_truncate_drops_rows_past_the_checkpoint_and_keeps_earlier_bytes(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path, TrainConfig())
     run.append_metrics(eval_rows([100, 200], 2, win_rate=True))
@@ -214,6 +226,7 @@ def test_truncate_drops_rows_past_the_checkpoint_and_keeps_earlier_bytes(tmp_pat
     assert kept.startswith(run.metrics_path.read_bytes())
 
 
+@pytest.mark.unit
 def test_truncate_reports_a_garbled_row(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path, TrainConfig())
     run.append_metrics(eval_rows([100], 1, win_rate=True))
@@ -268,6 +281,7 @@ def test_a_damaged_metrics_file_is_one_error_line_naming_file_and_line(
     assert not (tmp_path / "x.png").exists()
 
 
+@pytest.mark.unit
 def test_a_last_row_cut_short_is_left_out_of_the_rows_read(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path, TrainConfig())
     run.append_metrics(eval_rows([100], 2, win_rate=True))
@@ -356,6 +370,7 @@ def test_a_curve_of_one_evaluation_is_drawn(
     assert not np.array_equal(imread(tmp_path / "marked.png"), imread(tmp_path / "line-only.png"))
 
 
+@pytest.mark.unit
 def test_sessions_append_after_earlier_ones_and_skip_unreadable_lines(tmp_path: Path) -> None:
     run = RunDir.create(tmp_path / "run", TrainConfig())
     run.sessions_path.write_text('{"from_steps": 0, "to_steps": 64, "seconds": 2.0}\n'

@@ -80,6 +80,7 @@ def heal(unit: int) -> int:
     return 5 + unit
 
 
+@pytest.mark.unit
 def test_spec_and_units() -> None:
     env = make_env("smax:MMM2")
     world = env.env.world
@@ -90,6 +91,7 @@ def test_spec_and_units() -> None:
     assert world.unit_type_names[MEDIVAC] == "medivac" and world.unit_type_bits == 7
 
 
+@pytest.mark.unit
 def test_heal_raises_health_and_never_above_the_maximum(mmm: Mmm) -> None:
     step, state = mmm.step, mmm.state
     marine_pos = state.state.unit_positions[MARINE]
@@ -108,6 +110,7 @@ def test_heal_raises_health_and_never_above_the_maximum(mmm: Mmm) -> None:
         np.testing.assert_allclose(timestep.obs[MEDIC][-11 + 3], new.state.unit_energy[MEDIC] / 200)
 
 
+@pytest.mark.unit
 def test_energy_limits_healing(mmm: Mmm) -> None:
     step, state = mmm.step, mmm.state
     marine_pos = state.state.unit_positions[MARINE]
@@ -120,6 +123,7 @@ def test_energy_limits_healing(mmm: Mmm) -> None:
     assert 0.0 < gained <= 3 * REGEN_PER_STEP + 1e-5  # only what regenerates within the step
 
 
+@pytest.mark.unit
 def test_medivac_targets_living_biological_allies_only(mmm: Mmm) -> None:
     step, state = mmm.step, mmm.state
     world = mmm.env.env.world
@@ -149,6 +153,7 @@ def test_medivac_targets_living_biological_allies_only(mmm: Mmm) -> None:
     assert new.state.unit_health[ENEMY_MARINE] == 20.0
 
 
+@pytest.mark.unit
 def test_only_units_that_hit_air_target_the_medivac(mmm: Mmm) -> None:
     step, state = mmm.step, mmm.state
     world = mmm.env.env.world
@@ -162,6 +167,7 @@ def test_only_units_that_hit_air_target_the_medivac(mmm: Mmm) -> None:
     assert new.state.unit_health[ENEMY_MEDIC] == 150.0
 
 
+@pytest.mark.unit
 def test_flying_medivac_does_not_collide(mmm: Mmm) -> None:
     step, state = mmm.step, mmm.state
     built = edit(state, pos={
@@ -174,6 +180,7 @@ def test_flying_medivac_does_not_collide(mmm: Mmm) -> None:
     assert np.linalg.norm(after[OTHER_MARINE] - after[4]) > 0.7
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("allies_left", [True, False])
 def test_a_team_left_with_only_its_medivac_is_beaten(
     mmm: Mmm, allies_left: bool
@@ -185,6 +192,7 @@ def test_a_team_left_with_only_its_medivac_is_beaten(
     assert (timestep.reward >= 1.0) == allies_left
 
 
+@pytest.mark.unit
 def test_enemy_medivac_heals_under_the_heuristic(mmm: Mmm) -> None:
     step, state = mmm.step, mmm.state
     medic_pos = np.asarray(state.state.unit_positions[ENEMY_MEDIC])
@@ -220,6 +228,7 @@ def expected_ally_masks(units: Any) -> np.ndarray:
     return masks
 
 
+@pytest.mark.unit
 def test_mmm2_random_play_ends_episodes_with_a_win_rate_and_the_mask_matches() -> None:
     env = make_env("smax:MMM2")
     num_envs, num_steps = 16, 120

@@ -55,6 +55,7 @@ def log_softmax(x: np.ndarray) -> np.ndarray:
     )
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("policy", POLICIES)
 def test_log_prob_of_a_sampled_latent_and_joint_action_is_the_sum_of_its_parts(policy: str) -> None:
     algorithm, params, batch = acted(policy)
@@ -83,6 +84,7 @@ def test_log_prob_of_a_sampled_latent_and_joint_action_is_the_sum_of_its_parts(p
     np.testing.assert_allclose(joint, latent_part + per_agent.sum(-1), rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("policy", POLICIES)
 def test_joint_ratio_is_one_at_the_collecting_parameters_and_moves_with_the_latent(
     policy: str,
@@ -116,6 +118,7 @@ def joint_distribution(
     return jax.vmap(given)(jnp.arange(algorithm.network.config.consensus_codes)).sum(axis=0)
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("policy", ["categorical", "deterministic"])
 def test_categorical_consensus_represents_a_correlated_joint_policy_no_product_can(
     policy: str,
@@ -152,6 +155,7 @@ def test_categorical_consensus_represents_a_correlated_joint_policy_no_product_c
         assert joint[0, 0] + joint[2, 2] < 0.75, joint
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("policy", POLICIES)
 def test_permuting_agents_permutes_policies_given_the_latent_and_keeps_the_consensus_policy(
     policy: str,
@@ -194,6 +198,7 @@ PENALTY_RUN = (
 """The budget benchmarks/matrix_optimum.py compares every method at on matrix:penalty."""
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("mode, trains_latent", [("consensus", True), ("action", False)])
 def test_fine_tuning_trains_the_consensus_policy_with_the_consensus_only(
     mode: str, trains_latent: bool

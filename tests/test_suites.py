@@ -42,10 +42,12 @@ def value_at(settings: dict, dotted: str) -> object:
     return settings[outer][inner] if inner else settings[outer]
 
 
+@pytest.mark.unit
 def test_every_suite_is_named() -> None:
     assert set(IDS) == set(SUITES)
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("suite", list(SUITES))
 def test_a_suites_settings_resolve_with_their_source(suite: str) -> None:
     config, sources = resolve_config(overrides=[f"env={IDS[suite]}"])
@@ -82,6 +84,7 @@ def test_every_later_layer_beats_the_suite(suite: str, tmp_path: Path) -> None:
     ["env=matrix:fig1", "env_kwargs.payoff=[[1,2],[3,4]]", "network.consensus_iterations=n/2"],
     ["env=grf:academy_3_vs_1_with_keeper", "algo=mat", "ppo.target_kl=0.02", "seed=7"],
 ])
+@pytest.mark.unit
 def test_an_annotated_config_reads_back_as_the_same_config_and_sources(
     overrides: list[str],
 ) -> None:
@@ -92,6 +95,7 @@ def test_an_annotated_config_reads_back_as_the_same_config_and_sources(
     assert read_sources(to_yaml(config)) == {}
 
 
+@pytest.mark.unit
 def test_the_default_budget_of_each_suite() -> None:
     assert load_config(overrides=["env=matrix:fig1"]).total_steps == 4_000
     for suite in ("smax", "mamujoco", "grf", "pettingzoo", "jax"):
