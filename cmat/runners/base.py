@@ -86,37 +86,14 @@ class Trainer(Protocol):
         ...
 
 
-ADDED_TIMESTEP_FIELDS = {"alive": True, "global_state": 0.0}
-"""`TimeStep` fields newer than the first checkpoint format, with the value a checkpoint
-without them gets: every agent active, a zero global state. They describe only the
-observation in progress when the checkpoint was written, so a resumed run's first step at most
-sees them wrong; everything learned is restored exactly. Newer optional fields (`metrics`) are
-None for every environment that existed before them, and a checkpoint without them gets None."""
-
-
 def state_to_bytes(state: TrainerState) -> bytes:
-    """The checkpoint format of every cmat version: one flat map of the learner's fields and,
-    for in-graph runs, the environments' (`env_state`, `timestep`, `episode_return`, and since
-    recurrent algorithms `memory`: empty for the others, and for checkpoints written before)."""
+    """The checkpoint format: one flat map of the learner's fields and, for in-graph runs, the
+    environments' (`env_state`, `timestep`, `episode_return`, `memory`: empty for algorithms
+    without one)."""
     fields: dict[str, Any] = dict(flax.serialization.to_state_dict(state.learner))
     if state.envs is not None:
         fields.update(flax.serialization.to_state_dict(state.envs))
     return flax.serialization.msgpack_serialize(fields)
-
-
-def fill_added_timestep_fields(raw: dict[str, Any], template: EnvsState) -> None:
-    """Add `ADDED_TIMESTEP_FIELDS`, and the optional fields `template` leaves None, to restored
-    environment fields that lack them (in place)."""
-    if not isinstance(raw.get("timestep"), dict):
-        return
-    for name in template.timestep._fields:
-        shape = getattr(template.timestep, name)
-        if name in raw["timestep"]:
-            continue
-        if shape is None:
-            raw["timestep"][name] = None
-        elif name in ADDED_TIMESTEP_FIELDS:
-            raw["timestep"][name] = np.full(shape.shape, ADDED_TIMESTEP_FIELDS[name], shape.dtype)
 
 
 def state_difference(expected: Any, found: Any, path: str) -> str | None:
@@ -147,9 +124,8 @@ def state_difference(expected: Any, found: Any, path: str) -> str | None:
 def restore_state(
     learner: LearnerState, envs: EnvsState | None, seeds: int, data: bytes
 ) -> TrainerState:
-    """The all-seeds state serialised in `data` (`state_to_bytes`; a host run's checkpoint from
-    before the learner had its own state carries environment fields, which are ignored),
-    checked against one seed's templates (shapes and dtypes, e.g. from `jax.eval_shape`)."""
+    """The all-seeds state serialised in `data` (`state_to_bytes`), checked against one seed's
+    templates (shapes and dtypes, e.g. from `jax.eval_shape`)."""
     template = jax.tree.map(lambda x: jax.ShapeDtypeStruct((seeds, *x.shape), x.dtype),
                             TrainerState(learner, envs))
     try:
@@ -157,19 +133,17 @@ def restore_state(
         if not isinstance(raw, dict):
             raise TypeError("not a map")
         learner_fields = flax.serialization.to_state_dict(template.learner)
+        env_fields = ({} if template.envs is None
+                      else flax.serialization.to_state_dict(template.envs))
+        expected = {**learner_fields, **env_fields}
         difference = state_difference(
-            learner_fields, {name: raw[name] for name in learner_fields if name in raw}, "state"
-        )
+            expected, {name: raw[name] for name in expected if name in raw}, "state")
         if difference is not None:
             raise CmatError(f"checkpoint does not match this run's config ({difference})")
         restored_learner = flax.serialization.from_state_dict(
             template.learner, {name: raw[name] for name in learner_fields})
-        restored_envs = None
-        if template.envs is not None:
-            env_fields = {name: raw[name] if name in raw or name != "memory" else {}
-                          for name in flax.serialization.to_state_dict(template.envs)}
-            fill_added_timestep_fields(env_fields, template.envs)
-            restored_envs = flax.serialization.from_state_dict(template.envs, env_fields)
+        restored_envs = None if template.envs is None else flax.serialization.from_state_dict(
+            template.envs, {name: raw[name] for name in env_fields})
         restored = TrainerState(restored_learner, restored_envs)
     except CmatError:
         raise
