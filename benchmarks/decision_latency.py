@@ -14,9 +14,10 @@ and 99th-percentile milliseconds per call (a call decides every vehicle of every
 batch). A point that fails or passes `--timeout` seconds (compile included) is reported with
 the reason.
 
-Lines: 'cmat m=n' is the paper's default (m = number of agents), 'cmat m=5' the dispatch
-suite's large-team setting (the CMAT authors' ride-sharing code used consensus length 5 on
-1,000 vehicles); 'sable' is the recurrent Sable (one decision from its initial memory), 'sable
+Lines: 'cmat m=n' is the paper's setting (m = number of agents), 'cmat m=2' what cmat runs on
+teams above 32 agents when m is unset (`cmat.config.LARGE_TEAM`), 'cmat m=5' the dispatch
+suite's setting (the CMAT authors' ride-sharing code used consensus length 5 on 1,000
+vehicles); 'sable' is the recurrent Sable (one decision from its initial memory), 'sable
 (feed-forward)' Mava's ff_sable (results dated before 2026-12-06 call the feed-forward one
 'sable'); 'mat' and both Sables decode the agents one after another,
 'mappo' is one MLP per agent (fully parallel).
@@ -41,6 +42,7 @@ from machine import describe
 
 LINES = {
     "cmat m=n": ("cmat", ["network.consensus_iterations=n"]),
+    "cmat m=2": ("cmat", ["network.consensus_iterations=2"]),
     "cmat m=5": ("cmat", ["network.consensus_iterations=5"]),
     "mat": ("mat", []),
     "sable": ("sable", []),

@@ -30,8 +30,13 @@
 #       its table and PNG if the step ends in time);
 #   throughput_3s5z_vs_3s6z_small  3s5z_vs_3s6z at 1,024 environments;
 #   fleet                          decision latency of dispatch fleets of 100 and 1,000 vehicles:
-#       CMAT at m = 5, MAT, Sable and MAPPO, batches of 1 and 64 teams
-#       (benchmarks/decision_latency.py, into OUT/fleet/; timed only, in phase 2);
+#       CMAT at m = 2 (cmat's large-team rule) and m = 5 (the dispatch suite's), MAT, Sable and
+#       MAPPO, batches of 1 and 64 teams (benchmarks/decision_latency.py, into OUT/fleet/;
+#       timed only, in phase 2);
+#   fleet_scaling                  training on dispatch fleets of 100, 250, 500 and 1,000
+#       vehicles: CMAT at m = 2, MAT, MAPPO and the environment alone, at 256 environments
+#       (benchmarks/agent_scaling.py, into OUT/fleet_scaling/; MAT's points past its compile
+#       limit are reported as such);
 #   tests                          the core properties on the GPU: agent permutation, action
 #       masks, chunked gradients, the paper's loss with the joint ratio (phase 1 only).
 # GPU_STEPS="NAME ..." runs the named steps alone. GPU_QUICK=1 runs the same steps at CPU sizes:
@@ -39,7 +44,7 @@
 set -uo pipefail
 out=${1:?usage: gpu.sh OUT}
 steps=(throughput_3s5z_vs_3s6z_large throughput_27m_vs_30m scaling throughput_3s5z_vs_3s6z_small
-  fleet tests)
+  fleet fleet_scaling tests)
 read -ra asked <<< "${GPU_STEPS:-${steps[*]}}"
 for name in "${asked[@]}"; do
   [[ " ${steps[*]} " == *" $name "* ]] || {
@@ -61,11 +66,12 @@ export XLA_PYTHON_CLIENT_PREALLOCATE=false
 trap 'kill $(jobs -p) 2>/dev/null' EXIT
 
 if [ "${GPU_QUICK:-0}" = 1 ]; then
-  small=8 large=16 scaling_envs=8 teams="3m 8m" fleets="10"
+  small=8 large=16 scaling_envs=8 teams="3m 8m" fleets="10" fleet_teams="10 20"
 else
   small=1024 large=8192 scaling_envs=256 teams="3m 27m_vs_30m 100m" fleets="100 1000"
+  fleet_teams="100 250 500 1000"
 fi
-export small large scaling_envs teams fleets out PY
+export small large scaling_envs teams fleets fleet_teams out PY
 
 compare() {  # compare ENV ENVS ALGO...: throughput.py's algorithm comparison
   local env=$1 envs=$2
@@ -91,7 +97,14 @@ fleet() {
   local fleet_list
   read -ra fleet_list <<< "$fleets"
   "$PY" benchmarks/decision_latency.py --out "$out/fleet" --teams "${fleet_list[@]}" \
-    --lines "cmat m=5" mat sable mappo --batches 1 64 --calls 20 --timeout 60
+    --lines "cmat m=2" "cmat m=5" mat sable mappo --batches 1 64 --calls 20 --timeout 60
+}
+fleet_scaling() {
+  local size team_list=()
+  for size in $fleet_teams; do team_list+=("dispatch:grid-$size-mid"); done
+  "$PY" benchmarks/agent_scaling.py --out "$out/fleet_scaling" --teams "${team_list[@]}" \
+    --envs "$scaling_envs" --updates 1 --lines "cmat m=2" mat mappo "env only" \
+    --point-timeout 120 ${COMPILE_ONLY:+--compile-only}
 }
 tests() {
   "$PY" -m pytest -q -o addopts= -p no:cacheprovider \
@@ -152,6 +165,7 @@ selected throughput_27m_vs_30m && step throughput_27m_vs_30m 150
 selected scaling && step scaling 200
 selected throughput_3s5z_vs_3s6z_small && step throughput_3s5z_vs_3s6z_small 90
 selected fleet && step fleet 150
+selected fleet_scaling && step fleet_scaling 150
 selected tests && settle tests
 echo "== done after $(elapsed) s"
 ls -la "$out"
