@@ -22,9 +22,9 @@ import time
 import jax
 import jax.numpy as jnp
 
+from cmat.algorithms.cmat.network import CMATNetwork
+from cmat.algorithms.mat.network import MATNetwork
 from cmat.config import NetworkConfig
-from cmat.networks.cmat import CMATNetwork
-from cmat.networks.mat import MATNetwork
 
 
 def gradient_cost(

@@ -13,8 +13,8 @@ training steps/s (collect, target values, GAE, PPO epochs), and the update's ach
 beside a large matmul's FLOP/s measured in the same process. The update's FLOPs are XLA's cost
 analysis of one compiled gradient step times epochs × minibatches: exact up to m = 16
 consensus iterations, which are unrolled; above, the iterations are one scan
-(`cmat.networks.cmat.SCAN_ITERATIONS`), whose body the cost analysis may count once, so the
-FLOP/s figure is a lower bound there. Everything is timed after
+(`cmat.algorithms.cmat.network.SCAN_ITERATIONS`), whose body the cost analysis may count once,
+so the FLOP/s figure is a lower bound there. Everything is timed after
 compilation, fastest of `--repeats` runs. Env-only and collection runs alternate, so a change in
 the shared machine's load hits both; besides the ratio of the fastest runs, the table gives the
 median and range of the ratios of the `--repeats` alternating pairs. `XLA_FLAGS` from the

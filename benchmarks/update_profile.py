@@ -116,6 +116,7 @@ def main() -> None:
 
     import jax
 
+    from cmat.algorithms import algorithm_entry
     from cmat.errors import CmatError
     from cmat.resolve import load_config
     from cmat.runners import trainer
@@ -144,7 +145,7 @@ def main() -> None:
                                                       jax.random.PRNGKey(1))
         update = jax.jit(
             lambda learner, rollout: learn(setup.learner, learner, rollout),
-            compiler_options=compiler_options(setup.learner.algorithm.ynnpack_matmuls),
+            compiler_options=compiler_options(algorithm_entry(config.algo).ynnpack_matmuls),
         )
         compiled = update.lower(fresh.learner, rollout).compile()
 

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cmat.algorithms import algorithm_entry
 from cmat.resolve import load_config
 from cmat.runners.devices import compiler_options
 from cmat.runners.trainer import JaxTrainer, run_updates
@@ -61,7 +62,7 @@ def main() -> None:
     performed = jnp.int32(1)
     programs: dict[str, Any] = {}
     states: dict[str, Any] = {}
-    ours = compiler_options(trainer.learner_setup.algorithm.ynnpack_matmuls)
+    ours = compiler_options(algorithm_entry(config.algo).ynnpack_matmuls)
     for name, options in [("cmat", ours), *args.variant]:
         state = trainer.init()
         started = time.perf_counter()

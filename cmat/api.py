@@ -319,7 +319,7 @@ def with_eval_iterations(
     """A trainer whose network runs `iterations` consensus iterations, and `state` with the
     decoder's positional table cut to them. Positions past the trained m were never learned, so
     asking for more is an error rather than an extrapolation."""
-    from cmat.algorithms.cmat_blocks import with_iterations
+    from cmat.algorithms.cmat.blocks import with_iterations
 
     if not 0 <= iterations <= trained:
         raise CmatError(

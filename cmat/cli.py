@@ -18,7 +18,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import NoReturn
 
-from cmat.algorithms import algorithm_class, algorithm_names
+from cmat.algorithms import algorithm_entry, algorithm_names
 from cmat.api import (
     budget_note,
     build_trainer,
@@ -324,7 +324,7 @@ def config_command(args: argparse.Namespace) -> None:
     flat = {**{k: v for k, v in asdict(config).items() if k not in NESTED_FIELDS},
             **{f"{section}.{k}": v for section in NESTED_FIELDS
                for k, v in asdict(config)[section].items()}}
-    read = {f"network.{name}" for name in algorithm_class(config.algo).network_fields}
+    read = {f"network.{name}" for name in algorithm_entry(config.algo).network_fields}
     for name, value in flat.items():
         unread = (f"; not read by {config.algo}"
                   if name.startswith("network.") and name not in read else "")

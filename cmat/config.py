@@ -49,7 +49,7 @@ EVAL_ACTIONS = ("greedy", "sample")
 @dataclass(frozen=True)
 class NetworkConfig:
     """Network sizes (paper Sec. Network Architecture) and CMAT's consensus options. Each
-    algorithm reads the fields its class lists in `network_fields` (MAPPO and HAPPO read
+    algorithm reads the fields its entry lists in `network_fields` (MAPPO and HAPPO read
     `n_embd` as their MLPs' width); `cmat config --algo NAME` marks the fields it does not."""
 
     n_embd: int = 64
@@ -261,7 +261,7 @@ class TrainConfig:
     user asked for online logging (WANDB_MODE=online, or WANDB_API_KEY set); WANDB_PROJECT
     names the project (default cmat)."""
     preset: str | None = None
-    """A named set of values the algorithm declares (its class's `presets`), applied over its
+    """A named set of values the algorithm declares (its entry's `presets`), applied over its
     reference defaults and under `--config` / `--set`: 'paper' is the paper's exact settings
     (`cmat train --preset paper`); CMAT's 'tuned' names its default, the learning-speed
     study's configuration (docs/algorithms.md). None: the algorithm's defaults."""

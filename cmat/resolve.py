@@ -58,7 +58,7 @@ def resolve_config(
 ) -> tuple[TrainConfig, ConfigSources]:
     """A checked config and where each value came from. Layers, later ones winning: the
     dataclass defaults (or `base`, whose values keep `base_sources`), the environment suite's
-    settings (cmat.envs.suites), the algorithm's reference defaults (its class's
+    settings (cmat.envs.suites), the algorithm's reference defaults (its entry's
     `reference_defaults`, then its `task_reference_defaults` for the environment id), its
     preset, a YAML file, then `key=value` overrides, then `values` (the Python API's keyword
     arguments: `{"num_envs": 8, "ppo": {"lr": 1e-4}, "network.n_embd": 32}`, a dotted key

@@ -15,8 +15,8 @@ from test_training import TINY, fixed_batch, numpy_cmat_loss
 
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
-from cmat.algorithms.happo import HAPPO, compounding_factors, train_phase
-from cmat.algorithms.mappo import MAPPO
+from cmat.algorithms.happo.algorithm import HAPPO, compounding_factors, train_phase
+from cmat.algorithms.mappo.algorithm import MAPPO
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.resolve import load_config

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from cmat.algorithms import algorithm_class, algorithm_names, build_algorithm
+from cmat.algorithms import algorithm_entry, algorithm_names, build_algorithm
 from cmat.cli import main
 from cmat.config import NetworkConfig, field_docs, field_names
 from cmat.envs import make_env
@@ -47,10 +47,6 @@ def test_config_with_an_unknown_algorithm_is_one_error(
     assert capsys.readouterr().err.count("\n") == 1
 
 
-def test_each_registered_name_is_its_class_name() -> None:
-    assert all(algorithm_class(name).name == name for name in algorithm_names())
-
-
 CHANGED_NETWORK_FIELDS = {
     "n_embd": 32, "n_head": 2, "n_block": 2, "compressor_heads": 2, "consensus_iterations": 1,
     "consensus_source": "last", "consensus_policy": "categorical", "consensus_codes": 4,
@@ -70,7 +66,7 @@ def test_network_fields_an_algorithm_does_not_declare_leave_it_unchanged(algo: s
         params = algorithm.init(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
         return params, algorithm.greedy(params, timestep.obs, timestep.action_mask)
 
-    declared = algorithm_class(algo).network_fields
+    declared = algorithm_entry(algo).network_fields
     assert set(declared) <= set(CHANGED_NETWORK_FIELDS)
     reference_params, reference_actions = built(NetworkConfig())
     for name, value in CHANGED_NETWORK_FIELDS.items():

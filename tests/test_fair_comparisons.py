@@ -546,7 +546,7 @@ def test_a_nonfinite_loss_stops_the_run_and_keeps_the_last_checkpoint(
     metrics = (out / "metrics.csv").read_bytes()
     capsys.readouterr()
 
-    from cmat.algorithms import mappo
+    from cmat.algorithms.mappo import algorithm as mappo
 
     def poisoned(log_ratio, advantages, clip_eps, mask=None):
         loss, diagnostics = clipped_surrogate_loss(log_ratio, advantages, clip_eps, mask)

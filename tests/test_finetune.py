@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import yaml
 
-from cmat.algorithms.cmat import CMAT
-from cmat.algorithms.cmat_blocks import CMAT_BLOCKS, FINETUNE_TRAINABLE, with_iterations
+from cmat.algorithms.cmat.algorithm import CMAT
+from cmat.algorithms.cmat.blocks import CMAT_BLOCKS, FINETUNE_TRAINABLE, with_iterations
+from cmat.algorithms.cmat.network import ConsensusDecoder
 from cmat.cli import main
 from cmat.config import LARGE_TEAM, LARGE_TEAM_ITERATIONS, NetworkConfig, resolve_iterations
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.cmat import ConsensusDecoder
 from cmat.networks.layers import Compressor
 from cmat.resolve import load_config
 from cmat.rundir import RunDir

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from cmat.algorithms.base import Batch
-from cmat.algorithms.cmat import CMAT
-from cmat.algorithms.mat import MAT
-from cmat.algorithms.pmat import PMAT, order_log_prob, sample_order
+from cmat.algorithms.cmat.algorithm import CMAT
+from cmat.algorithms.mat.algorithm import MAT
+from cmat.algorithms.pmat.algorithm import PMAT, order_log_prob, sample_order
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution

@@ -10,10 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cmat.algorithms.cmat import CMAT
+from cmat.algorithms.cmat.algorithm import CMAT
+from cmat.algorithms.cmat.network import SCAN_ITERATIONS, ConsensusDecoder
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.cmat import SCAN_ITERATIONS, ConsensusDecoder
 from cmat.networks.heads import SharedInputDense, action_distribution
 from cmat.networks.layers import DecoderBlock, MultiHeadAttention, dense
 

@@ -15,7 +15,8 @@ from pettingzoo import ParallelEnv
 from test_training import greedy_return_gain
 
 from cmat.algorithms.base import Batch
-from cmat.algorithms.sable import FFSable, permute_agents
+from cmat.algorithms.sable.algorithm import FFSable, permute_agents
+from cmat.algorithms.sable.network import SableNetwork
 from cmat.cli import main
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -27,7 +28,6 @@ from cmat.networks.retention import (
     retention_parallel,
     retention_step,
 )
-from cmat.networks.sable import SableNetwork
 from cmat.resolve import load_config
 from cmat.runners import trainer as trainer_lib
 from cmat.runners.host import HostTrainer

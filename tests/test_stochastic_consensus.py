@@ -12,8 +12,8 @@ import optax
 import pytest
 
 from cmat.algorithms.base import Batch
-from cmat.algorithms.cmat import CMAT
-from cmat.algorithms.cmat_blocks import FROZEN, TRAIN, finetune_labels
+from cmat.algorithms.cmat.algorithm import CMAT
+from cmat.algorithms.cmat.blocks import FROZEN, TRAIN, finetune_labels
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cmat.algorithms.base import Batch
-from cmat.algorithms.cmat import CMAT
+from cmat.algorithms.cmat.algorithm import CMAT
 from cmat.config import NetworkConfig, PPOConfig, TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum

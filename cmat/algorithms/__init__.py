@@ -1,20 +1,27 @@
-"""The algorithm registry: the one place algorithms are listed.
+"""The algorithm registry.
 
-Each algorithm is one `AlgorithmEntry` (`ALGORITHMS`, and those installed packages add:
-`entries`), whose class declares what the rest of cmat needs to know about it (see
-`cmat.algorithms.base.Algorithm`): its `name`, its `reference_defaults`,
-`task_reference_defaults` and `presets` (config layers), the fine-tuning stages it supports and
-its `capabilities` (which algorithm-specific options it accepts). Config checks that depend on
-the algorithm (`check_config`) read them.
+Each algorithm is a package `cmat/algorithms/<name>/` (docs/algorithms.md): its `__init__`,
+which imports no JAX, names its `AlgorithmEntry`s in `ENTRIES` (one package may hold two:
+`sable` holds `sable` and `ff_sable`), its `algorithm.py` holds the class (network and loss),
+and modules of its own (its network) sit beside it; the modules every algorithm shares are
+`base.py` (the `Algorithm` protocol), `ppo.py` and `sgd.py` here, and `cmat.networks`. The
+registry finds cmat's own algorithms by scanning this package's subpackages
+(`builtin_entries`), so adding one is adding a folder, and then those installed packages add
+(`entries`). An entry holds what the rest of cmat needs to know about the algorithm: its label,
+its `reference_defaults`, `task_reference_defaults` and `presets` (config layers), the
+fine-tuning stages it supports, its `capabilities` (which algorithm-specific options it accepts)
+and the network fields it reads. Everything here but `algorithm_class` and `build_algorithm`
+reads the entries only, so resolving and checking a config never imports JAX.
 """
 
 from __future__ import annotations
 
 import functools
 import importlib
-from dataclasses import dataclass
+import pkgutil
 from typing import TYPE_CHECKING, Any
 
+from cmat.algorithms.entry import AlgorithmEntry
 from cmat.config import PPOConfig
 from cmat.errors import CmatError
 from cmat.plugins import with_plugins
@@ -24,46 +31,64 @@ if TYPE_CHECKING:
     from cmat.config import NetworkConfig, TrainConfig
     from cmat.envs.protocol import EnvSpec
 
-@dataclass(frozen=True)
-class AlgorithmEntry:
-    """What cmat knows of an algorithm without importing it (nor JAX): its name, the name of
-    its line in tables and figures, and where its class lives. A package adds an algorithm by
-    naming an `AlgorithmEntry` under the `cmat.algorithms` entry-point group, the entry point's
-    name being the algorithm's (docs/algorithms.md)."""
-
-    label: str
-    """Its name in tables, figures and claims (the papers' spelling)."""
-    cls: str
-    """`module:Class` of its `cmat.algorithms.base.Algorithm` subclass, imported on first use."""
-
-
-ALGORITHMS = {
-    "cmat": AlgorithmEntry("CMAT", "cmat.algorithms.cmat:CMAT"),
-    "mat": AlgorithmEntry("MAT", "cmat.algorithms.mat:MAT"),
-    "pmat": AlgorithmEntry("PMAT", "cmat.algorithms.pmat:PMAT"),
-    "triple_bert": AlgorithmEntry("Triple-BERT", "cmat.algorithms.triple_bert:TripleBERT"),
-    "happo": AlgorithmEntry("HAPPO", "cmat.algorithms.happo:HAPPO"),
-    "mappo": AlgorithmEntry("MAPPO", "cmat.algorithms.mappo:MAPPO"),
-    "sable": AlgorithmEntry("Sable", "cmat.algorithms.sable:Sable"),
-    "ff_sable": AlgorithmEntry("Sable (feed-forward)", "cmat.algorithms.sable:FFSable"),
-}
-"""The algorithms cmat ships, in the order `cmat config` and error messages list them."""
+__all__ = [
+    "ENTRY_POINTS", "OPTION_CAPABILITIES", "AlgorithmEntry", "algorithm_class", "algorithm_entry",
+    "algorithm_label", "algorithm_names", "algorithm_presets", "build_algorithm",
+    "builtin_entries", "check_config", "entries", "finetune_stage_error", "reference_defaults",
+    "task_reference_defaults",
+]
 
 ENTRY_POINTS = "cmat.algorithms"
 """The entry-point group where installed packages name their algorithms."""
 
 
 @functools.cache
+def builtin_entries() -> dict[str, AlgorithmEntry]:
+    """The algorithms cmat ships: the `ENTRIES` of every subpackage of `cmat.algorithms`, the
+    packages in the order of their names and each package's entries in its own order (the order
+    `cmat config` and error messages list them). Only the packages' `__init__` modules are
+    imported, none of them imports JAX."""
+    found: dict[str, AlgorithmEntry] = {}
+    packages = sorted(module.name for module in pkgutil.iter_modules(__path__) if module.ispkg)
+    for package in packages:
+        module = importlib.import_module(f"{__name__}.{package}")
+        declared = getattr(module, "ENTRIES", None)
+        if not isinstance(declared, dict) or not all(
+            isinstance(entry, AlgorithmEntry) for entry in declared.values()
+        ):
+            raise TypeError(f"{module.__name__}.ENTRIES must be a dict of AlgorithmEntry "
+                            f"by algorithm name, got {type(declared).__name__}")
+        for name, entry in declared.items():
+            if name in found:
+                raise ValueError(f"algorithm {name!r} is named twice, the second time by "
+                                 f"{module.__name__}")
+            found[name] = entry
+    return found
+
+
+@functools.cache
 def entries() -> dict[str, AlgorithmEntry]:
-    """Every algorithm: cmat's own (`ALGORITHMS`), then those installed packages add under
+    """Every algorithm: cmat's own (`builtin_entries`), then those installed packages add under
     `ENTRY_POINTS` (cmat.plugins: a broken one is skipped with a one-line warning)."""
-    return with_plugins(ALGORITHMS, ENTRY_POINTS, AlgorithmEntry, "algorithm")
+    return with_plugins(builtin_entries(), ENTRY_POINTS, AlgorithmEntry, "algorithm")
+
+
+def algorithm_names() -> tuple[str, ...]:
+    return tuple(entries())
+
+
+def algorithm_entry(name: str) -> AlgorithmEntry:
+    """The named algorithm's entry; CmatError for an unknown name."""
+    found = entries()
+    if name not in found:
+        raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(found)}")
+    return found[name]
 
 
 def algorithm_label(algo: str) -> str:
     """The name of `algo`'s line, as its authors name it (its entry's label): `Sable` is the
     Sable paper's recurrent Sable, `Sable (feed-forward)` Mava's `ff_sable`."""
-    return entries()[algo].label
+    return algorithm_entry(algo).label
 
 
 OPTION_CAPABILITIES = {
@@ -78,43 +103,29 @@ OPTION_CAPABILITIES = {
 algorithm accepts)."""
 
 
-def registry() -> dict[str, type[Algorithm]]:
-    """Every algorithm's class by its name (the modules imported on first use)."""
-    return {name: algorithm_class(name) for name in entries()}
-
-
-def algorithm_names() -> tuple[str, ...]:
-    return tuple(entries())
-
-
 @functools.cache
 def algorithm_class(name: str) -> type[Algorithm]:
-    """The class that implements the named algorithm, its module imported on first use;
-    CmatError for an unknown name."""
-    if name not in entries():
-        raise CmatError(f"unknown algorithm {name!r}; available: {', '.join(entries())}")
-    module_name, _, class_name = entries()[name].cls.partition(":")
+    """The class that implements the named algorithm (its entry's `cls`), its module imported
+    on first use; CmatError for an unknown name."""
+    module_name, _, class_name = algorithm_entry(name).cls.partition(":")
     cls: type[Algorithm] = getattr(importlib.import_module(module_name), class_name)
     return cls
 
 
 def reference_defaults(name: str) -> dict[str, Any]:
-    """The named algorithm's reference settings (its class's `reference_defaults`)."""
-    defaults: dict[str, Any] = algorithm_class(name).reference_defaults
-    return defaults
+    """The named algorithm's reference settings (its entry's `reference_defaults`)."""
+    return algorithm_entry(name).reference_defaults
 
 
 def task_reference_defaults(name: str, env_id: str) -> dict[str, Any]:
-    """The named algorithm's reference settings for one task (its class's
+    """The named algorithm's reference settings for one task (its entry's
     `task_reference_defaults`; empty where its reference has no per-task values)."""
-    defaults: dict[str, Any] = algorithm_class(name).task_reference_defaults.get(env_id, {})
-    return defaults
+    return algorithm_entry(name).task_reference_defaults.get(env_id, {})
 
 
 def algorithm_presets(name: str) -> dict[str, dict[str, Any]]:
-    """The named algorithm's presets (its class's `presets`: name -> config values)."""
-    presets: dict[str, dict[str, Any]] = algorithm_class(name).presets
-    return presets
+    """The named algorithm's presets (its entry's `presets`: name -> config values)."""
+    return algorithm_entry(name).presets
 
 
 def build_algorithm(
@@ -126,12 +137,12 @@ def build_algorithm(
 
 
 def finetune_stage_error(algo: str, stage: str) -> str | None:
-    """Why the named algorithm cannot run the fine-tuning stage (not among its class's
+    """Why the named algorithm cannot run the fine-tuning stage (not among its entry's
     `finetune_stages`), or None; the one message of `cmat train`, `cmat finetune` and an
     experiment spec."""
-    if stage in algorithm_class(algo).finetune_stages:
+    if stage in algorithm_entry(algo).finetune_stages:
         return None
-    able = [name for name, cls in registry().items() if stage in cls.finetune_stages]
+    able = [name for name, entry in entries().items() if stage in entry.finetune_stages]
     return (f"fine-tuning stage {stage!r} freezes CMAT's blocks and is supported only for algo "
             f"{', '.join(able) or 'none'}, got {algo!r}")
 
@@ -141,15 +152,15 @@ def check_config(config: TrainConfig) -> TrainConfig:
     lacks the capability one of its options needs (`OPTION_CAPABILITIES`); returns it.
 
     Raises CmatError naming the field and the algorithms that accept it."""
-    cls = algorithm_class(config.algo)
+    entry = algorithm_entry(config.algo)
     if config.finetune is not None and (error := finetune_stage_error(config.algo,
                                                                       config.finetune)):
         raise CmatError(f"invalid config: {error}")
     for field, (capability, neutral) in OPTION_CAPABILITIES.items():
         section, _, name = field.partition(".")
         value = getattr(getattr(config, section), name)
-        if value != neutral and capability not in cls.capabilities:
-            able = [n for n, other in registry().items() if capability in other.capabilities]
+        if value != neutral and capability not in entry.capabilities:
+            able = [n for n, other in entries().items() if capability in other.capabilities]
             raise CmatError(
                 f"invalid config: {field}={value} applies to the "
                 f"{capability.replace('_', '-')} algorithms ({', '.join(able)}), not to "

@@ -1,13 +1,14 @@
 """What an algorithm supplies to the shared trainer: acting, values and its loss.
 
 Rollout, buffer, GAE, target critic, value normalisation, optimiser, evaluation, logging and
-checkpoints are shared; an algorithm module holds only its network and its loss.
+checkpoints are shared; an algorithm package (`cmat/algorithms/<name>/`) holds only its network
+and its loss.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, ClassVar, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import optax
@@ -95,45 +96,11 @@ class Algorithm(Protocol):
     """Per-team functions (no batch axis except in `loss`); the trainer vmaps them.
 
     `global_state` [state_dim] is the environment's global state (`TimeStep.global_state`,
-    empty where it has none); only centralised critics read it.
+    empty where it has none); only centralised critics read it. What the rest of cmat needs to
+    know about an algorithm without building it (its name, config layers, capabilities,
+    fine-tuning stages, network fields) is its `cmat.algorithms.entry.AlgorithmEntry`, not part
+    of this protocol.
     """
-
-    name: ClassVar[str]
-    """The algorithm's name in configs and on the command line (`--algo`)."""
-
-    finetune_stages: ClassVar[tuple[str, ...]]
-    """The fine-tuning stages (`TrainConfig.finetune`) `finetune_labels` knows."""
-
-    network_fields: ClassVar[tuple[str, ...]]
-    """The `NetworkConfig` fields its networks read; the others leave it unchanged
-    (`cmat config --algo NAME` marks them)."""
-
-    capabilities: ClassVar[frozenset[str]]
-    """What the algorithm has of `cmat.algorithms.OPTION_CAPABILITIES`: 'consensus',
-    'joint_ratio', 'per_agent_values', 'minibatch_chunks',
-    'sampled_order'; the options that need one are rejected without it. 'minibatch_chunks'
-    promises a loss whose reductions over the minibatch are means with parameter-independent
-    denominators, so that without active masks equal slices' losses average to the
-    minibatch's (`loss_is_sample_mean`), and whose network pass with
-    `ppo.minibatch_chunks` = k runs through `chunked`."""
-
-    reference_defaults: ClassVar[dict[str, Any]]
-    """Config values of the algorithm's reference implementation where they differ from the
-    dataclass defaults (the reference MAT's SMAC settings); `cmat.resolve.resolve_config` puts them
-    between those defaults and a YAML file."""
-
-    task_reference_defaults: ClassVar[dict[str, dict[str, Any]]]
-    """Config values the reference runs one task with (an environment id such as
-    'smax:5m_vs_6m' -> values), where its per-task scripts differ from `reference_defaults`;
-    `cmat.resolve.resolve_config` puts them right after those."""
-
-    presets: ClassVar[dict[str, dict[str, Any]]]
-    """Named sets of config values (`TrainConfig.preset`); 'paper' is the paper's setting."""
-
-    ynnpack_matmuls: ClassVar[bool]
-    """On CPU, whether its programs run their matmuls through YNNPACK (XLA's other YNNPACK
-    fusions stay off either way; `cmat.runners.devices.compiler_options`): True where that was
-    measured faster (docs/speed.md)."""
 
     @classmethod
     def build(

@@ -3,14 +3,14 @@
 The loss is a value, as in Brax's `training/gradients.py`: the shared update passes an
 algorithm's `loss`, HAPPO one loss per agent phase. The optimiser is passed too, so a caller can
 restrict it (fine-tuning masks, HAPPO's per-agent phases) without this module knowing why.
-`PPOAlgorithm` holds what every algorithm inherits unless it declares otherwise.
+`PPOAlgorithm` holds what every algorithm inherits unless it overrides it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -162,16 +162,8 @@ def finetune_optimizer(
 
 class PPOAlgorithm:
     """The defaults of `cmat.algorithms.base.Algorithm`: `update` is `minibatch_sgd` on the
-    algorithm's own `loss`; no fine-tuning stages, no capabilities, no presets, the dataclass
-    defaults as reference settings. Algorithms inherit it and declare what differs."""
-
-    name: ClassVar[str]
-    finetune_stages: ClassVar[tuple[str, ...]] = ()
-    capabilities: ClassVar[frozenset[str]] = frozenset()
-    reference_defaults: ClassVar[dict[str, Any]] = {}
-    task_reference_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
-    presets: ClassVar[dict[str, dict[str, Any]]] = {}
-    ynnpack_matmuls: ClassVar[bool] = False
+    algorithm's own `loss`, feed-forward, no fine-tuning stages. Algorithms inherit it and
+    override what differs."""
 
     @property
     def recurrent(self) -> bool:

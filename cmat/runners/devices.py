@@ -106,9 +106,10 @@ def to_host(tree: Any) -> Any:
 def compiler_options(ynnpack_matmuls: bool = False) -> dict[str, str]:
     """`jax.jit(..., compiler_options=...)` for the trainers' programs on CPU: no elementwise or
     reduction fusions through YNNPACK, and matmuls through YNNPACK where `ynnpack_matmuls` (the
-    algorithm's `Algorithm.ynnpack_matmuls`), else through XLA's own kernels. Nothing
-    where JAX computes on another platform, where the installed XLA does not know the option or
-    value, or where the user's `XLA_FLAGS` set YNNPACK's fusions themselves (their choice wins).
+    hint of the algorithm's entry, `AlgorithmEntry.ynnpack_matmuls`), else through XLA's own
+    kernels. Nothing where JAX computes on another platform, where the installed XLA does not
+    know the option or value, or where the user's `XLA_FLAGS` set YNNPACK's fusions themselves
+    (their choice wins).
     Training steps/s against XLA's defaults: docs/speed.md; the measurements in
     benchmarks/results/speed_notes_2026-12-05.md ("YNNPACK fusions")."""
     return dict(_cpu_compiler_options(ynnpack_matmuls))

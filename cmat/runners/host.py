@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cmat.algorithms import algorithm_entry
 from cmat.algorithms.base import ActResult, Params, initial_memories
 from cmat.config import TrainConfig
 from cmat.envs.host import default_workers, make_host_env
@@ -116,7 +117,7 @@ class HostTrainer:
         self._reference = probe.description()
         self._spare = [probe]  # becomes the first environment of an in-process pool
         self.learner_setup = build_learner(config, self.env_spec)
-        options = compiler_options(self.learner_setup.algorithm.ynnpack_matmuls)
+        options = compiler_options(algorithm_entry(config.algo).ynnpack_matmuls)
         self._init = jax.jit(partial(host_learner, self.learner_setup), compiler_options=options)
         self._policy = jax.jit(partial(policy_step, self.learner_setup), compiler_options=options)
         self._eval_step = jax.jit(

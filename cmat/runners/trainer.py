@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cmat.algorithms import algorithm_entry
 from cmat.config import TrainConfig
 from cmat.envs import make_env
 from cmat.envs.protocol import EnvSpec
@@ -131,7 +132,7 @@ class JaxTrainer:
         self.sharded_axis = sharded_axis(len(self.devices), config.seeds, config.num_envs)
         chunk = config.updates_per_log
         collector = self.setup.collector
-        options = compiler_options(self.learner_setup.algorithm.ynnpack_matmuls)
+        options = compiler_options(algorithm_entry(config.algo).ynnpack_matmuls)
         self._init = jax.jit(lambda rng: init_state(self.setup, rng), compiler_options=options)
         self._chunk = jax.jit(
             jax.vmap(

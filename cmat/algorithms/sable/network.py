@@ -13,8 +13,9 @@ sinusoidal encoding of the episode's timestep (the reference's `rec_sable`); wit
 reference's `ff_sable`) every timestep starts from empty states.
 
 Sequence methods take T timesteps of one team ([T, n, ...]); `encode`, `decode`, `value` and
-`__call__` take one timestep and a decision order, as `cmat.networks.mat.MATNetwork` does, so
-the MAT algorithm's acting and loss code runs on either network.
+`__call__` take one timestep and a decision order, as `cmat.algorithms.mat.network.MATNetwork`
+does, so the MAT algorithm's acting and loss code runs on either network
+(`cmat.algorithms.mat.algorithm.EncoderDecoder`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from cmat.algorithms.mat.network import MATOutput
 from cmat.config import NetworkConfig
 from cmat.networks.heads import (
     decode_in_order,
@@ -33,7 +35,6 @@ from cmat.networks.heads import (
     start_action,
 )
 from cmat.networks.layers import SMALL_GAIN, dense
-from cmat.networks.mat import MATOutput
 from cmat.networks.retention import MultiScaleRetention, sinusoidal_encoding
 
 

@@ -13,7 +13,7 @@ own coefficient, `ppo.consensus_ent_coef`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, ClassVar, NamedTuple, cast
 
 import distrax
@@ -21,7 +21,8 @@ import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked
-from cmat.algorithms.cmat_blocks import FINETUNE_TRAINABLE, finetune_labels
+from cmat.algorithms.cmat.blocks import finetune_labels
+from cmat.algorithms.cmat.network import CMATNetwork, PolicyOutput
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     joint_clip_range,
@@ -34,7 +35,6 @@ from cmat.algorithms.ppo import (
 from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.cmat import CMATNetwork, PolicyOutput
 from cmat.networks.heads import action_distribution, greedy_action
 
 
@@ -47,66 +47,12 @@ class LatentSample(NamedTuple):
     """[] log π_c(latent | O) under the collecting parameters."""
 
 
-PAPER_SETTINGS: dict[str, Any] = {
-    "num_envs": 8,
-    "ppo": {
-        "clip_eps": 0.05, "value_coef": 1.0, "gamma": 0.99, "gae_lambda": 0.95,
-        "target_tau": 0.1, "value_norm": True, "huber_loss": True, "huber_delta": 10.0,
-        "clipped_value_loss": True, "normalize_advantages": True, "active_masks": False,
-        "joint_clip": "joint", "entropy_reduction": "mean", "target_kl": None,
-    },
-    "network": {
-        "n_embd": 64, "n_head": 1, "n_block": 1, "consensus_iterations": "n",
-        "consensus_source": "mixture", "consensus_policy": "deterministic", "init_gain": 0.01,
-        "log_std_init": 1.0,
-    },
-}
-"""The paper's settings (Experiments supplement): "the model configurations follow those
-established in MAT, with the exception of setting the rollout threads to 8". The suite layer
-(cmat.envs.suites) gives MAT's column for the benchmark (SMAC: lr 5e-4, 15 epochs, one
-minibatch, entropy 0.01, grad norm 10, 100-step rollouts; MA-MuJoCo and GRF their own); this
-preset adds 8 rollout threads, MAT's shared values, m = n, the mixture consensus, the joint
-ratio clipped to [1 − ε, 1 + ε] (eq. cmat), entropy averaged over agents, and the target critic
-(τ not given in the paper: 0.1, docs/algorithms.md)."""
-
-
-TUNED_SETTINGS: dict[str, Any] = {"ppo": {"joint_clip": "per_agent", "target_tau": 1.0}}
-"""CMAT's default since the learning-speed study (docs/results/index.md), where it
-learned faster per env step than the paper's settings, MAT and MAPPO on SMAX 6h_vs_8z, 5m_vs_6m
-and 3s5z_vs_3s6z: the per-agent clip of the joint ratio (`ppo.joint_clip=per_agent`, which
-replaces clip(R, 1 − ε, 1 + ε) of eq. cmat by clip(R, (1 − ε)^k, (1 + ε)^k) for k active agents)
-and no lag in the target critic (τ = 1: V_φ- is the critic as the last update left it, standard
-PPO). Joint ratio, consensus, team critic and order independence are unchanged. `--preset paper`
-restores the paper's clip and τ = 0.1 with the rest of its settings."""
-
-
 @dataclass(frozen=True)
 class CMAT(PPOAlgorithm):
     network: CMATNetwork
 
-    name: ClassVar[str] = "cmat"
-    finetune_stages: ClassVar[tuple[str, ...]] = tuple(FINETUNE_TRAINABLE)
-    capabilities: ClassVar[frozenset[str]] = frozenset(
-        {"consensus", "joint_ratio", "minibatch_chunks"}
-    )
-    network_fields: ClassVar[tuple[str, ...]] = tuple(
-        f.name for f in fields(NetworkConfig)
-        if f.name not in ("mlp_layers", "retention_decay", "retention_chunk")
-    )
-    """Every `NetworkConfig` field but the MLP baselines' depth and Sable's retention options."""
-
-    reference_defaults: ClassVar[dict[str, Any]] = TUNED_SETTINGS
-    """The reference MAT's settings (the dataclass defaults and the suite's column) with the
-    study's two changes (`TUNED_SETTINGS`); the paper's own are `--preset paper`."""
-
     output_axes: ClassVar[Any] = PolicyOutput._make((0, None, 0, 0, 0, 0, 0))
     """The network output's batch axes (`chunked`): the log-std is shared by every sample."""
-    ynnpack_matmuls: ClassVar[bool] = True
-    presets: ClassVar[dict[str, dict[str, Any]]] = {
-        "paper": PAPER_SETTINGS, "tuned": TUNED_SETTINGS,
-    }
-    """'paper': the paper's settings, for reproduction; 'tuned': the default's own values
-    (kept so that specs and commands that name it keep their meaning)."""
 
     @classmethod
     def build(
@@ -174,7 +120,7 @@ class CMAT(PPOAlgorithm):
         return log_ratio, output, distribution
 
     def finetune_labels(self, params: Params, mode: str) -> Any:
-        """CMAT's fine-tuning stages (`cmat_blocks.FINETUNE_TRAINABLE`, Algorithm 1, B)."""
+        """CMAT's fine-tuning stages (`blocks.FINETUNE_TRAINABLE`, Algorithm 1, B)."""
         return finetune_labels(params, mode)
 
     def loss(

@@ -14,13 +14,14 @@ the reference's optional recurrent one.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar, cast
+from typing import cast
 
 import distrax
 import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
+from cmat.algorithms.mappo.network import MLPActor, MLPCritic
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     masked_mean,
@@ -32,7 +33,6 @@ from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution, greedy_action
-from cmat.networks.mlp import MLPActor, MLPCritic
 
 
 @dataclass(frozen=True)
@@ -45,36 +45,6 @@ class MAPPO(PPOAlgorithm):
     """The environment's global state size; 0: the critic reads the concatenated observations."""
     obs_has_agent_id: bool = False
     """The observations already end with the agent's one-hot id (`EnvSpec.agent_id`)."""
-
-    name: ClassVar[str] = "mappo"
-    network_fields: ClassVar[tuple[str, ...]] = (
-        "n_embd", "mlp_layers", "init_gain", "log_std_init")
-    """`n_embd` is the hidden width of the actor's and the critic's MLPs, `mlp_layers` their
-    depth, `init_gain` the actor output layer's gain (on-policy's `--gain`)."""
-
-    presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
-    """'paper': the paper's comparison setting, the reference settings with 8 rollout
-    threads."""
-
-    reference_defaults: ClassVar[dict[str, Any]] = {
-        "ppo": {"clip_eps": 0.2, "epochs": 5, "target_tau": 1.0, "active_masks": True},
-    }
-    """Yu et al. 2022 (marlbenchmark/on-policy, SMAC scripts): clip 0.2, 5 epochs, GAE and
-    targets from the collecting critic, active masks."""
-
-    task_reference_defaults: ClassVar[dict[str, dict[str, Any]]] = {
-        "smax:3m": {"ppo": {"epochs": 15}},
-        "smax:8m": {"ppo": {"epochs": 15}},
-        "smax:25m": {"ppo": {"epochs": 10}},
-        "smax:5m_vs_6m": {"ppo": {"epochs": 10, "clip_eps": 0.05}},
-        "smax:10m_vs_11m": {"ppo": {"epochs": 10}},
-        "smax:3s_vs_5z": {"ppo": {"epochs": 15, "clip_eps": 0.05}},
-        "smax:MMM2": {"ppo": {"num_minibatches": 2}, "network": {"init_gain": 1.0}},
-    }
-    """on-policy's per-map SMAC scripts (`onpolicy/scripts/train_smac_scripts/train_smac_MAP.sh`
-    at de66d7a) where they differ from clip 0.2, 5 epochs, 1 minibatch, gain 0.01; 3s5z,
-    3s5z_vs_3s6z, 6h_vs_8z and 27m_vs_30m run those, and maps without a script (2s3z, SMACv2)
-    too. 3s_vs_5z's stacked frames are not modelled."""
 
     @classmethod
     def build(

@@ -15,18 +15,18 @@ Reference: NUDT-BI-MARL/PMAT (8894f9e), `mat/algorithms/mat/algorithm/pma_transf
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar, NamedTuple, cast
+from typing import NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params
-from cmat.algorithms.mat import MAT
+from cmat.algorithms.mat.algorithm import MAT
+from cmat.algorithms.mat.network import OrderScorer
 from cmat.algorithms.ppo import clipped_surrogate_loss
 from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.mat import OrderScorer
 
 
 class OrderSample(NamedTuple):
@@ -58,24 +58,6 @@ def sample_order(scores: jax.Array, key: jax.Array) -> jax.Array:
 class PMAT(PPOAlgorithm):
     mat: MAT
     scorer: OrderScorer
-
-    name: ClassVar[str] = "pmat"
-    capabilities: ClassVar[frozenset[str]] = frozenset(
-        {"per_agent_values", "minibatch_chunks", "sampled_order"}
-    )
-    network_fields: ClassVar[tuple[str, ...]] = MAT.network_fields
-    """MAT's; the order scorer's output layer has gain `init_gain`, its hidden layers the
-    reference's fixed 2 × 64."""
-
-    reference_defaults: ClassVar[dict[str, Any]] = {
-        "ppo": {**MAT.reference_defaults["ppo"], "order_loss_coef": 1e-4, "order_in_loss": "index"},
-    }
-    """PMAT is built on the reference MAT code and trains as it does, with the reference SMAC
-    script's `--ranking_loss_coef 1e-4` and its training pass's decision order: `forward` in
-    `pma_transformer.py` decodes the stored actions with `discrete_parallel_act` on the encoder
-    output in index order (acting reindexed it along the sampled order)."""
-    presets: ClassVar[dict[str, dict[str, Any]]] = MAT.presets
-    ynnpack_matmuls: ClassVar[bool] = True
 
     @classmethod
     def build(

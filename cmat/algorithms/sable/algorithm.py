@@ -1,7 +1,7 @@
 """Sable (Mahjoub et al., ICML 2025): MAT's autoregressive PPO on a retention network.
 
 Acting, values and the per-agent clipped objective are MAT's (cmat.algorithms.mat), on
-`cmat.networks.sable.SableNetwork`. `sable` is the Sable paper's Sable, the recurrent one
+`network.SableNetwork`. `sable` is the Sable paper's Sable, the recurrent one
 (Mava's `rec_sable`, mava/systems/sable/anakin/rec_sable.py): the retention states are carried
 from step to step of an episode (decayed by κ, reset at episode starts, `SableCarry`), the
 timestep within the episode is encoded into every retention, and the update trains on whole
@@ -45,13 +45,13 @@ import jax.numpy as jnp
 import optax
 
 from cmat.algorithms.base import ActResult, Batch, Params
-from cmat.algorithms.mat import MAT
+from cmat.algorithms.mat.algorithm import MAT
+from cmat.algorithms.mat.network import MATOutput
 from cmat.algorithms.ppo import normalize
+from cmat.algorithms.sable.network import SableMemory, SableNetwork, empty_memory
 from cmat.algorithms.sgd import Metrics, minibatch_sgd
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.networks.mat import MATOutput
-from cmat.networks.sable import SableMemory, SableNetwork, empty_memory
 
 
 class SableCarry(NamedTuple):
@@ -124,28 +124,8 @@ class Sable(MAT):
 
     network: SableNetwork
 
-    name: ClassVar[str] = "sable"
     memory: ClassVar[bool] = True
     """Whether the retention states carry across an episode's steps (module docstring)."""
-    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values"})
-    network_fields: ClassVar[tuple[str, ...]] = (
-        "n_embd", "n_head", "n_block", "log_std_init", "retention_decay", "retention_chunk",
-    )
-    """The retention encoder-decoder's sizes and its memory (SableNetwork)."""
-
-    presets: ClassVar[dict[str, dict[str, Any]]] = {}
-    ynnpack_matmuls: ClassVar[bool] = False
-    """Measured no faster with them (0.97 on SMAX 2s3z; docs/speed.md)."""
-
-    reference_defaults: ClassVar[dict[str, Any]] = {
-        "ppo": {
-            "lr": 5e-4, "epochs": 10, "num_minibatches": 1, "clip_eps": 0.2, "ent_coef": 0.01,
-            "value_coef": 0.5, "max_grad_norm": 10.0, "target_tau": 1.0, "active_masks": False,
-            "per_agent_gae": True, "value_norm": False, "huber_loss": False,
-            "clipped_value_loss": True, "normalize_advantages": False,
-        },
-    }
-    """Mava's rec_sable system and network configs (module docstring)."""
 
     @classmethod
     def build(
@@ -265,15 +245,4 @@ class Sable(MAT):
 class FFSable(Sable):
     """Mava's feed-forward Sable (`ff_sable`): every step from empty retention states."""
 
-    name: ClassVar[str] = "ff_sable"
     memory: ClassVar[bool] = False
-    network_fields: ClassVar[tuple[str, ...]] = (
-        "n_embd", "n_head", "n_block", "log_std_init", "retention_decay",
-    )
-    """The retention encoder-decoder's sizes (SableNetwork without memory)."""
-
-    reference_defaults: ClassVar[dict[str, Any]] = {
-        "ppo": {**Sable.reference_defaults["ppo"], "lr": 2.5e-4, "epochs": 4,
-                "num_minibatches": 2, "max_grad_norm": 0.5},
-    }
-    """Mava's ff_sable system and network configs (module docstring)."""

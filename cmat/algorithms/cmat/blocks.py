@@ -1,6 +1,6 @@
 """CMAT's parameter blocks by name: what fine-tuning trains, and m at evaluation time.
 
-The blocks are the top-level modules of `cmat.networks.cmat.CMATNetwork` (paper Fig. 2,
+The blocks are the top-level modules of `network.CMATNetwork` (paper Fig. 2,
 Algorithm 1): encoder, critic_compressor, critic_mlp, decoder, actor_compressor, actor_mlp, and
 latent_consensus when the consensus is stochastic.
 A block the configuration never calls has no parameters (decoder at m = 0, actor_compressor with
@@ -26,7 +26,8 @@ FINETUNE_TRAINABLE: dict[str, tuple[str, ...]] = {
     "consensus": ("critic_mlp", "decoder", "actor_compressor", "latent_consensus"),
     "action": ("critic_mlp", "actor_mlp"),
 }
-"""The blocks each fine-tuning stage trains (Algorithm 1, B); every other block is frozen.
+"""The blocks each fine-tuning stage trains (Algorithm 1, B); every other block is frozen. Its
+stages are those CMAT's entry declares (`cmat.algorithms.cmat.FINETUNE_STAGES`), in order.
 Consensus enhancement freezes the action policy (Actor-MLP, with the continuous heads' log_std,
 which is a parameter of the Actor-MLP) and the encoder and Critic-Compressor, which the paper
 names as neither; action-policy enhancement freezes everything that forms the consensus. With a

@@ -17,12 +17,13 @@ its own collecting-time value stored with the transition (`ActResult.extras`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar, cast
+from typing import Any, Protocol, cast
 
 import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked, value_active_mask
+from cmat.algorithms.mat.network import MATNetwork, MATOutput
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     masked_mean,
@@ -34,36 +35,29 @@ from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution
-from cmat.networks.mat import MATNetwork, MATOutput
-from cmat.networks.sable import SableNetwork
+
+
+class EncoderDecoder(Protocol):
+    """What MAT reads of its network: a Flax module of one team with `MATNetwork`'s methods
+    (`encode`, `value`, `decode` and the teacher-forced `__call__`, run through `init` and
+    `apply`). MAT's own is `MATNetwork`, Sable's `SableNetwork`: MAT names only its own, so
+    that Sable's package depends on MAT's and not the other way round."""
+
+    num_agents: int
+    discrete: bool
+
+    def init(self, rngs: Any, *args: Any, **kwargs: Any) -> Any: ...
+
+    def apply(self, variables: Any, *args: Any, **kwargs: Any) -> Any: ...
 
 
 @dataclass(frozen=True)
 class MAT(PPOAlgorithm):
-    network: MATNetwork | SableNetwork
-    """The encoder-decoder: MAT's, or Sable's with the same methods (`cmat.algorithms.sable`)."""
+    network: EncoderDecoder
+    """The encoder-decoder: MAT's (`MATNetwork`), or Sable's with the same methods
+    (`cmat.algorithms.sable`)."""
     per_agent_gae: bool = False
     """Values are per agent ([n], `ppo.per_agent_gae`), else their team mean ([])."""
-
-    name: ClassVar[str] = "mat"
-    capabilities: ClassVar[frozenset[str]] = frozenset({"per_agent_values", "minibatch_chunks"})
-    network_fields: ClassVar[tuple[str, ...]] = (
-        "n_embd", "n_head", "n_block", "init_gain", "log_std_init", "attention_block")
-    """The encoder-decoder's sizes (MATNetwork) and how its encoder attends."""
-
-    ynnpack_matmuls: ClassVar[bool] = True
-    presets: ClassVar[dict[str, dict[str, Any]]] = {"paper": {"num_envs": 8}}
-    """'paper': the paper's comparison setting, the reference settings with 8 rollout
-    threads."""
-
-    reference_defaults: ClassVar[dict[str, Any]] = {
-        "ppo": {"target_tau": 1.0, "active_masks": True, "value_active_masks": False,
-                "per_agent_gae": True},
-    }
-    """The reference MAT (PKU-MARL/Multi-Agent-Transformer, SMAC scripts): GAE and targets from
-    the collecting critic, active masks in the policy loss and entropy but not in the value
-    loss, per-agent GAE with value normalisation; the other hyper-parameters are the dataclass
-    defaults."""
 
     @classmethod
     def build(

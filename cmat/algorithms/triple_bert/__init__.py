@@ -1,0 +1,36 @@
+"""Triple-BERT (Zhao et al. 2025) as the paper's baseline: the team as one multi-action agent
+whose per-agent factors see no consensus, trained as CMAT.
+
+`algorithm.py` holds the class (CMAT's acting and loss), `network.py` the network. This module
+is its registry entry and settings, read without importing JAX.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from cmat.algorithms.entry import AlgorithmEntry
+
+NETWORK_FIELDS = (
+    "n_embd", "n_head", "n_block", "compressor_heads", "init_gain", "log_std_init",
+    "attention_block")
+"""CMAT's sizes without its decoder and consensus (TripleBERTNetwork), and how its encoder
+attends."""
+
+REFERENCE_DEFAULTS: dict[str, Any] = {}
+"""The paper's baseline setting: the reference MAT's (the dataclass defaults), trained as
+the paper trains CMAT (joint ratio clipped to [1 − ε, 1 + ε], target critic τ = 0.1)."""
+
+YNNPACK_MATMULS = False
+"""Measured no faster with them (1.00 on SMAX 2s3z; docs/speed.md)."""
+
+ENTRIES = {
+    "triple_bert": AlgorithmEntry(
+        label="Triple-BERT",
+        cls="cmat.algorithms.triple_bert.algorithm:TripleBERT",
+        network_fields=NETWORK_FIELDS,
+        capabilities=frozenset({"joint_ratio", "minibatch_chunks"}),
+        reference_defaults=REFERENCE_DEFAULTS,
+        ynnpack_matmuls=YNNPACK_MATMULS,
+    ),
+}
