@@ -1,8 +1,10 @@
 """cmat's internal import graph: one line per module, ``module -> imported cmat modules``.
 
 Usage: ``python scripts/import_graph.py [--check]``. Every import counts, also those inside
-functions. With ``--check`` it prints only the imports that go upwards in `LAYERS` and the
-import cycles, and exits 1 when there is one.
+functions; ``from package import module`` counts as an import of the module. With ``--check``
+it prints only the imports that go upwards in `LAYERS`, the import cycles between modules and
+those between algorithm packages (`cmat/algorithms/NAME/`: one may import another's modules,
+never in a cycle), and exits 1 when there is one.
 """
 
 from __future__ import annotations
@@ -34,6 +36,12 @@ def module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def is_module(name: str) -> bool:
+    """Whether `name` is a module or package of cmat's (a file of PACKAGE)."""
+    path = PACKAGE.parent.joinpath(*name.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
 def imports(path: Path) -> set[str]:
     found: set[str] = set()
     for node in ast.walk(ast.parse(path.read_text())):
@@ -41,12 +49,23 @@ def imports(path: Path) -> set[str]:
             found.update(alias.name for alias in node.names if alias.name.startswith("cmat"))
         elif isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("cmat"):
             found.add(node.module)
+            found.update(f"{node.module}.{alias.name}" for alias in node.names
+                         if is_module(f"{node.module}.{alias.name}"))
     return found
 
 
 def unit(module: str) -> str:
     """The package or top-level module `module` belongs to (a key of LAYERS)."""
     return ".".join(module.split(".")[:2])
+
+
+def algorithm_package(module: str) -> str | None:
+    """The algorithm package (`cmat.algorithms.NAME`, a folder) `module` belongs to, or None."""
+    parts = module.split(".")
+    package = ".".join(parts[:3])
+    if parts[:2] != ["cmat", "algorithms"] or len(parts) < 3:
+        return None
+    return package if (PACKAGE.parent.joinpath(*parts[:3]) / "__init__.py").is_file() else None
 
 
 def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -109,6 +128,16 @@ def main() -> int:
     }
     for component in cycles(package_graph):
         print(f"import cycle: {' <-> '.join(component)}")
+        problems += 1
+    algorithm_graph: dict[str, set[str]] = {}
+    for module, targets in graph.items():
+        if (source := algorithm_package(module)) is not None:
+            algorithm_graph.setdefault(source, set()).update(
+                package for package in map(algorithm_package, targets)
+                if package is not None and package != source
+            )
+    for component in cycles(algorithm_graph):
+        print(f"import cycle between algorithm packages: {' <-> '.join(component)}")
         problems += 1
     return 1 if problems else 0
 
