@@ -39,7 +39,7 @@ from cmat.config import (
     validate,
 )
 from cmat.envs import probe_env
-from cmat.envs.suites import registry
+from cmat.envs.suites import registry, suite_of
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
 from cmat.resolve import explain, resolve_config
@@ -208,6 +208,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help="print every layer's value of the field KEY (e.g. ppo.lr), top to "
                            "bottom: the default, the suite, the algorithm, its task values, the "
                            "preset, the file, the command line; the last one is used")
+    show.add_argument("--check-env", action="store_true",
+                      help="also build the environment with its options, which checks its name "
+                           "and options here (imports its suite and JAX: seconds more); "
+                           "`cmat train` always does")
     show.set_defaults(handler=config_command)
 
     experiment = commands.add_parser(
@@ -319,7 +323,8 @@ def config_command(args: argparse.Namespace) -> None:
             used = "  <- used" if number == len(rows) - 1 else ""
             print(f"{args.explain} = {value!r}  [{label}]{used}")
         return
-    _, unavailable = probe_env(config.env, config.env_kwargs)
+    unavailable = (probe_env(config.env, config.env_kwargs)[1] if args.check_env
+                   else suite_of(config.env).unavailable(config.env))
     docs = field_docs()
     flat = {**{k: v for k, v in asdict(config).items() if k not in NESTED_FIELDS},
             **{f"{section}.{k}": v for section in NESTED_FIELDS

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 from typing import Any
 
 import jax
@@ -38,6 +40,22 @@ def test_config_shows_the_algorithms_reference_values_with_their_source(
     out = capsys.readouterr().out
     assert "ppo.clip_eps = 0.05  [algorithm mappo on smax:5m_vs_6m]" in out
     assert "ppo.epochs = 10  [algorithm mappo on smax:5m_vs_6m]" in out
+
+
+@pytest.mark.unit
+def test_config_imports_no_jax_and_builds_the_environment_only_when_asked(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A fresh interpreter prints the config of a SMAX task without importing JAX; an unknown
+    scenario passes there and is one error line with `--check-env`."""
+    script = ("import sys; from cmat.cli import main; "
+              "code = main(['config', '--env', 'smax:3mm', '--algo', 'mat']); "
+              "print(code, 'jax' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120, check=True)
+    assert done.stdout.splitlines()[-1] == "0 False", done.stderr[-2000:]
+    assert main(["config", "--env", "smax:3mm", "--check-env"]) == 2
+    assert "unknown SMAX scenario '3mm'" in capsys.readouterr().err
 
 
 def test_config_with_an_unknown_algorithm_is_one_error(

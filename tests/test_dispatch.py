@@ -257,25 +257,13 @@ def test_grid_city_neighbours_are_adjacent_zones() -> None:
         assert len(targets) == [2, 3, 3, 2, 3, 4, 4, 3, 3, 4, 4, 3, 2, 3, 3, 2][zone]
 
 
-def test_cmat_train_on_a_dispatch_task(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    out = tmp_path / "run"
-    assert main(["train", "--env", "dispatch:grid-12-mid", "--algo", "mappo", "--steps", "480",
-                 "--set", "env_kwargs.grid_size=4", "eval_episodes=2", "--out", str(out)]) == 0
-    rows = list(csv.DictReader((out / "metrics.csv").open()))
-    assert rows and all(np.isfinite(float(r["episode_return"])) for r in rows
-                        if r["kind"] == "eval")
-    assert main(["train", "--env", "dispatch:grid-99999-mid", "--out",
-                 str(tmp_path / "bad")]) == 2
-    assert "at most 5000 vehicles" in capsys.readouterr().err.splitlines()[-1]
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", algorithm_names())
 def test_every_algorithm_trains_on_a_dispatch_task(tmp_path: Path, algo: str) -> None:
     """One update of each learning algorithm on a 12-vehicle fleet: the run completes with
     finite losses and the operator's metrics in its evaluation rows. Slow suite: compiling the
-    eight programs takes 3-6 minutes on 2 cores (cmat and mappo train on dispatch in the fast
-    suite above)."""
+    eight programs takes 3-6 minutes on 2 cores (mappo trains on dispatch in the fast
+    suite: `test_a_run_reports_the_operators_metrics_in_metrics_csv`)."""
     out = tmp_path / "run"
     assert main(["train", "--env", "dispatch:grid-12-mid", "--algo", algo, "--steps", "20",
                  "--set", "env_kwargs.grid_size=4", "env_kwargs.episode_minutes=10",
@@ -288,17 +276,25 @@ def test_every_algorithm_trains_on_a_dispatch_task(tmp_path: Path, algo: str) ->
     assert evaluation and all(0.0 <= float(row["service_rate"]) <= 1.0 for row in evaluation)
 
 
-def test_evaluation_reports_the_operators_metrics_in_metrics_csv(tmp_path: Path) -> None:
+def test_a_run_reports_the_operators_metrics_in_metrics_csv(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The run of tests/test_evaluation_episodes.py's fixture, whose compiled programs the
+    session's compilation cache then holds."""
     out = tmp_path / "run"
-    assert main(["train", "--env", "dispatch:grid-8-high", "--algo", "mappo", "--steps", "240",
+    assert main(["train", "--env", "dispatch:grid-8-high", "--algo", "mappo", "--steps", "360",
                  "--set", "env_kwargs.grid_size=3", "env_kwargs.episode_minutes=20",
-                 "eval_episodes=3", "--out", str(out)]) == 0
+                 "num_envs=2", "rollout_length=30", "log_interval=2", "eval_episodes=3",
+                 "--out", str(out)]) == 0
     evals = [r for r in csv.DictReader((out / "metrics.csv").open()) if r["kind"] == "eval"]
     assert evals
     for row in evals:
+        assert np.isfinite(float(row["episode_return"]))
         assert 0 < float(row["service_rate"]) <= 1 and float(row["revenue"]) > 0
         assert 0 <= float(row["empty_share"]) <= 1 and float(row["conflicts_per_step"]) >= 0
         assert float(row["mean_wait"]) <= float(row["p95_wait"]) + 1
+    assert main(["train", "--env", "dispatch:grid-99999-mid", "--out",
+                 str(tmp_path / "bad")]) == 2
+    assert "at most 5000 vehicles" in capsys.readouterr().err.splitlines()[-1]
 
 
 def test_cmat_eval_runs_a_baseline_like_a_trained_policy(
@@ -320,11 +316,13 @@ def test_cmat_eval_runs_a_baseline_like_a_trained_policy(
         assert message in capsys.readouterr().err
 
 
-@pytest.mark.optimised
+@pytest.mark.slow
 def test_mappo_learns_to_beat_random_dispatch_on_a_small_fleet() -> None:
-    """Measured (seed 0): greedy return 5.9 at init, 11.5 after 4,800 steps and 12.3 after
-    6,000 (sampled, the suite's evaluation: 9.4); random legal 7.75, Hungarian 13.0 on the
-    same task. Greedy here: on 12 vehicles the policy has learned to spread them."""
+    """Slow suite (about 100 s on 2 cores; the fast suite's learning check is CMAT on a matrix
+    game, tests/test_training.py). Measured (seed 0): greedy return 5.9 at init, 11.5 after
+    4,800 steps and 12.3 after 6,000 (sampled, the suite's evaluation: 9.4); random legal 7.75,
+    Hungarian 13.0 on the same task. Greedy here: on 12 vehicles the policy has learned to
+    spread them."""
     from cmat.resolve import load_config
     from cmat.runners.trainer import JaxTrainer
 

@@ -54,10 +54,13 @@ def finish_pair(processes: list[subprocess.Popen[bytes]], logs: Path) -> None:
         assert process.wait(timeout=600) == 0, (logs / f"process-{index}.log").read_text()[-3000:]
 
 
+@pytest.mark.slow
 def test_two_processes_train_what_two_devices_train(tmp_path: Path) -> None:
-    """512 steps, then --resume to 1,024, over two processes; against 1,024 steps in one
-    process with two devices: every metric within 1e-5 (floating-point order), apart from the
-    absolute-metric row the first session wrote at its budget of 512."""
+    """Slow suite (80 s on 2 cores: three sessions, two of two processes; the fast suite starts
+    two processes in the tests below). 512 steps, then --resume to 1,024, over two processes;
+    against 1,024 steps in one process with two devices: every metric within 1e-5 (floating-
+    point order), apart from the absolute-metric row the first session wrote at its budget of
+    512."""
     one = tmp_path / "one"
     done = subprocess.run([sys.executable, "-m", "cmat", "train", *RUN, "--steps", "1024",
                            "--out", str(one)], env=environment(2), capture_output=True,

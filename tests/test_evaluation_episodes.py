@@ -20,6 +20,8 @@ from cmat.experiments.report import eval_protocol
 from cmat.rundir import EVAL_PROTOCOL, RunDir
 from cmat.runners import build_trainer
 
+pytestmark = pytest.mark.quick_compiles
+
 METRICS = ("episode_return", "service_rate", "revenue", "expired", "conflicts_per_step")
 
 

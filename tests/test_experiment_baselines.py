@@ -13,6 +13,8 @@ import yaml
 from cmat.cli import main
 from cmat.envs.dispatch.baselines import baseline_env, evaluate_means
 
+pytestmark = pytest.mark.quick_compiles
+
 OPTIONS = {"grid_size": 3, "episode_minutes": 10}
 SPEC = {
     "name": "fleet", "steps": 120, "seeds": 2,

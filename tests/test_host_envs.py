@@ -329,9 +329,13 @@ def signal_run() -> Iterator[tuple[HostTrainer, TrainerState, dict[str, np.ndarr
     trainer.close()
 
 
+@pytest.mark.slow
 def test_cmat_learns_the_signal_game_through_the_adapter(signal_run: Any) -> None:
-    """Measured: 6 updates of 16 envs x 25 steps (2,400 steps) reach the optimum greedy return
-    of 5 (win rate 1) for seeds 0 and 1; without the cue shared, 5/3 is the best."""
+    """Slow suite with the other test of `signal_run` (its two worker processes and 8-epoch
+    updates take 80-110 s on 2 cores; the host runner's fast tests are the pool's, the sampled
+    evaluation's and the permutation's). Measured: 6 updates of 16 envs x 25 steps (2,400 steps)
+    reach the optimum greedy return of 5 (win rate 1) for seeds 0 and 1; without the cue shared,
+    5/3 is the best."""
     trainer, state, metrics = signal_run
     result = trainer.evaluate(state, 16)
     np.testing.assert_allclose(result["episode_return"], [5.0, 5.0])
@@ -340,6 +344,7 @@ def test_cmat_learns_the_signal_game_through_the_adapter(signal_run: Any) -> Non
     assert np.all(metrics["episode_return"] > 5 / 12)  # random play's mean, pooled over the chunk
 
 
+@pytest.mark.slow
 def test_killed_worker_and_a_restored_checkpoint_are_survived(
     signal_run: Any, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -418,8 +423,11 @@ def test_permuting_agents_permutes_the_policy_through_the_host_runner(reach_run:
         permuted.close()
 
 
+@pytest.mark.slow
 @needs_mujoco
 def test_halfcheetah_6x1_through_the_cli(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Slow suite (80 s on 2 cores): MuJoCo's continuous control through the CLI; the fast suite
+    maps continuous actions through the host runner (`reach_run`)."""
     out = tmp_path / "cheetah"
     assert main(["train", "--env", "mamujoco:HalfCheetah-6x1", "--steps", "400", "--out",
                  str(out), "--set", "num_envs=4", "rollout_length=50", "network.n_embd=16",

@@ -160,7 +160,7 @@ def test_m_zero_uses_e0_alone() -> None:
     assert out.consensus.shape == (3, 32)
 
 
-@pytest.mark.parametrize("iterations", [1, 4, 9])
+@pytest.mark.parametrize("iterations", [1, 9])
 def test_scanned_consensus_iterations_equal_unrolled_ones(iterations: int) -> None:
     """The decoder's scanned path (large m) has the unrolled path's parameters and gives its
     consensus sequence and gradients up to float rounding."""

@@ -153,8 +153,8 @@ def test_an_environment_wrong_on_any_machine_is_an_error_wherever_it_is_probed(
 ) -> None:
     with pytest.raises(CmatError, match=re.escape(message)):
         probe_env(env, options)
-    assert main(["config", "--env", env, *[f"--set=env_kwargs.{k}={v}" for k, v in
-                                           options.items()]]) == 2
+    settings = [f"--set=env_kwargs.{k}={v}" for k, v in options.items()]
+    assert main(["config", "--check-env", "--env", env, *settings]) == 2
     captured = capsys.readouterr()
     lines = captured.err.strip().splitlines()
     assert captured.out == "" and len(lines) == 1 and message in lines[0], captured.err
@@ -170,7 +170,7 @@ def test_a_known_environment_whose_suite_is_missing_is_unavailable_not_unknown(
     assert probe_env("grf:academy_3_vs_1_with_keeper", {}) == (
         None, "GRF needs gfootball (No module named 'gfootball')")
     assert probe_env("matrix:fig1", {}) == (2, None)
-    assert main(["config", "--env", "grf:academy_3_vs_1_with_keeper"]) == 0
+    assert main(["config", "--check-env", "--env", "grf:academy_3_vs_1_with_keeper"]) == 0
     out = capsys.readouterr().out
     assert "ppo.epochs = " in out
     assert out.splitlines()[-1] == ("# grf:academy_3_vs_1_with_keeper cannot be built on this "

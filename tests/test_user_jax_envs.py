@@ -152,9 +152,10 @@ def crane(**kwargs: Any) -> Crane:
     return Crane(**kwargs)
 
 
-@pytest.mark.optimised
+@pytest.mark.slow
 def test_a_marl_env_trains_by_id_and_is_learned(tmp_path: Path) -> None:
-    """The CLI trains a user's protocol env in-graph; the policy learns it (the last rollouts'
+    """Slow suite (40 s on 2 cores; the fast suite trains user environments by id in the tests
+    below). The CLI trains a user's protocol env in-graph; the policy learns it (the last rollouts'
     reward per step well above a random team's 1/3)."""
     out = tmp_path / "run"
     code = main([

@@ -109,13 +109,19 @@ class Suite:
     """How `cmat render` draws it: 'jaxmarl' (JaxMARL's own renderers, in-graph) or 'rgb_array'
     (the simulator's `render()`), None where it cannot."""
 
+    def unavailable(self, env_id: str) -> str | None:
+        """Why `env_id` cannot be built on this machine (`requires` is not installed), else None;
+        found without importing the suite or JAX."""
+        if self.requires is not None and importlib.util.find_spec(self.requires[0]) is None:
+            return f"{env_id} needs {self.requires[0]}, which is not installed: {self.requires[1]}"
+        return None
+
     def build(self, env_id: str) -> tuple[Callable[..., Any], Iterable[str] | None]:
         """The factory and option names of `env_id` (its `Builder`'s answer).
 
         Raises SuiteUnavailable where `requires` is missing, CmatError for an unknown NAME."""
-        if self.requires is not None and importlib.util.find_spec(self.requires[0]) is None:
-            raise SuiteUnavailable(f"{env_id} needs {self.requires[0]}, which is not installed: "
-                                   f"{self.requires[1]}")
+        if (why := self.unavailable(env_id)) is not None:
+            raise SuiteUnavailable(why)
         module, _, function = self.builder.partition(":")
         builder: Builder = getattr(importlib.import_module(module), function)
         return builder(env_id, env_id.partition(":")[2])
