@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from cmat.algorithms.cmat import PRESETS as CMAT_PRESETS
 from cmat.algorithms.entry import AlgorithmEntry
 
 NETWORK_FIELDS = (
@@ -21,6 +22,10 @@ REFERENCE_DEFAULTS: dict[str, Any] = {}
 """The paper's baseline setting: the reference MAT's (the dataclass defaults), trained as
 the paper trains CMAT (joint ratio clipped to [1 − ε, 1 + ε], target critic τ = 0.1)."""
 
+PRESETS = CMAT_PRESETS
+"""CMAT's: 'paper' the paper's setting (the baseline trained as the paper trains CMAT; the
+consensus fields it sets are not read), 'tuned' the study's two changes."""
+
 YNNPACK_MATMULS = False
 """Measured no faster with them (1.00 on SMAX 2s3z; docs/speed.md)."""
 
@@ -31,6 +36,7 @@ ENTRIES = {
         network_fields=NETWORK_FIELDS,
         capabilities=frozenset({"joint_ratio", "minibatch_chunks"}),
         reference_defaults=REFERENCE_DEFAULTS,
+        presets=PRESETS,
         ynnpack_matmuls=YNNPACK_MATMULS,
     ),
 }
