@@ -55,6 +55,7 @@ POINT = r"""
 import json, statistics, sys, time
 import jax, jax.numpy as jnp, numpy as np
 from cmat.algorithms import build_algorithm
+from cmat.algorithms.base import is_recurrent, with_memory
 from cmat.envs import make_env
 from cmat.resolve import load_config
 team, algo, batch, calls, *extra = sys.argv[1:]
@@ -65,11 +66,12 @@ algorithm = build_algorithm(config.algo, config.network, env.spec, config.ppo)
 _, timestep = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(1), batch))
 params = algorithm.init(jax.random.PRNGKey(0), timestep.obs[0], timestep.action_mask[0])
 obs, mask = timestep.obs, timestep.action_mask
-if algorithm.recurrent:
+if is_recurrent(algorithm):
+    stepper = with_memory(algorithm)
     memory = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)),
-                          algorithm.initial_memory())
+                          stepper.initial_memory())
     start = jnp.ones(batch, bool)
-    decide = jax.jit(lambda p, o, m: jax.vmap(algorithm.greedy_with_memory,
+    decide = jax.jit(lambda p, o, m: jax.vmap(stepper.greedy_with_memory,
                                               (None, 0, 0, 0, 0))(p, memory, o, m, start)[0])
 else:
     decide = jax.jit(lambda p, o, m: jax.vmap(algorithm.greedy, (None, 0, 0))(p, o, m))

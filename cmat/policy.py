@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cmat.algorithms.base import initial_memories
+from cmat.algorithms.base import initial_memories, is_recurrent, with_memory
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
@@ -59,7 +59,7 @@ class Policy:
     def recurrent(self) -> bool:
         """Whether the policy acts from a state carried across an episode's steps; it then acts
         through `initial_memory` and `greedy_with_memory` only."""
-        return self.algorithm.recurrent
+        return is_recurrent(self.algorithm)
 
     def greedy(self, obs: Any, action_mask: Any = None) -> jax.Array:
         """The most likely actions: [n] ints or [n, A] floats for obs [n, obs_dim]; with a
@@ -171,7 +171,7 @@ def _greedy_team_with_memory(
 ) -> tuple[jax.Array, Any]:
     from cmat.runners.collector import env_actions
 
-    act = policy.algorithm.greedy_with_memory
+    act = with_memory(policy.algorithm).greedy_with_memory
     if obs.ndim == 2:
         actions, memory = act(params, memory, obs, mask, start)
     else:

@@ -13,7 +13,13 @@ import textwrap
 import pytest
 
 import cmat.algorithms
-from cmat.algorithms import AlgorithmEntry, algorithm_class, builtin_entries, entries
+from cmat.algorithms import (
+    AlgorithmEntry,
+    algorithm_class,
+    algorithm_names,
+    builtin_entries,
+    entries,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -85,3 +91,38 @@ def test_resolving_and_checking_every_algorithms_config_imports_no_jax() -> None
                           timeout=300, check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip() == f"{len(entries())} []", done.stdout
+
+
+@pytest.mark.unit
+def test_only_recurrent_algorithms_carry_a_state_and_the_others_act_through_stateless() -> None:
+    """Recurrent Sable acts through its own `Recurrent` methods; every feed-forward algorithm
+    (feed-forward Sable too, whose class could carry one) through `Stateless`, whose empty
+    state leaves `act` and `greedy` as they are."""
+    import jax
+    import numpy as np
+
+    from cmat.algorithms import build_algorithm
+    from cmat.algorithms.base import Recurrent, Stateless, is_recurrent, with_memory
+    from cmat.config import NetworkConfig, PPOConfig
+    from cmat.envs import make_env
+
+    env = make_env("matrix:fig1")
+    _, step = env.reset(jax.random.PRNGKey(0))
+    for name in algorithm_names():
+        algorithm = build_algorithm(name, NetworkConfig(n_embd=8), env.spec, PPOConfig())
+        stepper = with_memory(algorithm)
+        assert is_recurrent(algorithm) == (name == "sable"), name
+        assert isinstance(stepper, Stateless) == (name != "sable"), name
+        assert isinstance(stepper, Recurrent), name
+        if name in ("sable", "ff_sable"):
+            continue
+        assert not hasattr(algorithm, "act_with_memory"), name
+        params = algorithm.init(jax.random.PRNGKey(1), step.obs, step.action_mask)
+        key = jax.random.PRNGKey(2)
+        acted, memory = stepper.act_with_memory(params, stepper.initial_memory(), step.obs,
+                                                step.action_mask, key, step.global_state,
+                                                np.bool_(True))
+        direct = algorithm.act(params, step.obs, step.action_mask, key, step.global_state)
+        assert memory == ()
+        np.testing.assert_array_equal(acted.actions, direct.actions)
+        np.testing.assert_allclose(acted.log_probs, direct.log_probs)

@@ -36,7 +36,8 @@ from cmat.envs.protocol import EnvSpec
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners import trainer as trainer_lib
-from cmat.runners.learner import ROLLOUT_FAULTS, fault_code, make_batch
+from cmat.runners.collector import rollout_report
+from cmat.runners.learner import ROLLOUT_FAULTS, make_batch, summarise_updates, update_fault_code
 from cmat.runners.trainer import JaxTrainer, build_setup, init_state
 from cmat.runners.types import Transition
 
@@ -503,6 +504,15 @@ def test_the_log_ratio_clamp_changes_nothing_inside_its_bound() -> None:
 
         got = jax.grad(surrogate)(log_ratio)
         np.testing.assert_allclose(got, jax.grad(reference)(log_ratio), rtol=1e-6)
+
+
+def fault_code(metrics: dict[str, jax.Array], params: Any, steps: Transition) -> jax.Array:
+    """The `fault_code` of one update with these metrics and parameters on this rollout: the
+    collector's report and the learner's check, combined as a run's chunk combines them."""
+    per_update = {**rollout_report(steps), "update_fault": update_fault_code(metrics, params)}
+    spec = make_env("matrix:fig1").spec
+    return summarise_updates(spec, {key: value[None] for key, value in per_update.items()})[
+        "fault_code"]
 
 
 def test_fault_code_names_the_first_failed_check() -> None:

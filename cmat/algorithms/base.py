@@ -8,7 +8,8 @@ and its loss.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, NamedTuple, Protocol
+from dataclasses import dataclass
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import jax
 import optax
@@ -99,7 +100,8 @@ class Algorithm(Protocol):
     empty where it has none); only centralised critics read it. What the rest of cmat needs to
     know about an algorithm without building it (its name, config layers, capabilities,
     fine-tuning stages, network fields) is its `cmat.algorithms.entry.AlgorithmEntry`, not part
-    of this protocol.
+    of this protocol. An algorithm whose acting carries a state across an episode's steps is
+    `Recurrent` as well.
     """
 
     @classmethod
@@ -125,40 +127,6 @@ class Algorithm(Protocol):
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         """The most likely available joint action [n] (continuous: the means [n, A]), for
         evaluation."""
-        ...
-
-    @property
-    def recurrent(self) -> bool:
-        """Acting carries a state across the steps of an episode (`initial_memory`,
-        `act_with_memory`); the learner then hands `loss` whole sequences and their first
-        states, values come from `sequence_values`."""
-        ...
-
-    def initial_memory(self) -> Any:
-        """One team's state before its first step (() for feed-forward algorithms)."""
-        ...
-
-    def act_with_memory(
-        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
-        key: jax.Array, global_state: jax.Array, start: jax.Array,
-    ) -> tuple[ActResult, Any]:
-        """`act` from `memory`, the state after the previous step; `start` [] says `obs`
-        begins an episode (the state is reset first). Returns the new state too."""
-        ...
-
-    def greedy_with_memory(
-        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
-        start: jax.Array,
-    ) -> tuple[jax.Array, Any]:
-        """`greedy` from `memory` (as `act_with_memory`); returns the new state too."""
-        ...
-
-    def sequence_values(
-        self, params: Params, memory: Any, obs: jax.Array, global_state: jax.Array,
-        starts: jax.Array,
-    ) -> jax.Array:
-        """Values [T] or [T, n] of T consecutive steps of one environment (obs [T, n, obs_dim],
-        global_state [T, state_dim], starts [T]) from the state `memory` before them."""
         ...
 
     def value(
@@ -190,11 +158,100 @@ class Algorithm(Protocol):
         ...
 
 
+@runtime_checkable
+class Recurrent(Protocol):
+    """An algorithm whose acting carries a state across the steps of an episode (recurrent
+    Sable). The runners act and evaluate every algorithm through these methods, a feed-forward
+    one through `Stateless` (`with_memory`); for a recurrent one the learner hands `loss` whole
+    sequences and their first states, and values come from `sequence_values`."""
+
+    @property
+    def recurrent(self) -> bool:
+        """Whether this instance carries its state (False for a class built either way, as
+        Sable's feed-forward variant)."""
+        ...
+
+    def initial_memory(self) -> Any:
+        """One team's state before its first step."""
+        ...
+
+    def act_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        key: jax.Array, global_state: jax.Array, start: jax.Array,
+    ) -> tuple[ActResult, Any]:
+        """`Algorithm.act` from `memory`, the state after the previous step; `start` [] says
+        `obs` begins an episode (the state is reset first). Returns the new state too."""
+        ...
+
+    def greedy_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        start: jax.Array,
+    ) -> tuple[jax.Array, Any]:
+        """`Algorithm.greedy` from `memory` (as `act_with_memory`); returns the new state too."""
+        ...
+
+    def sequence_values(
+        self, params: Params, memory: Any, obs: jax.Array, global_state: jax.Array,
+        starts: jax.Array,
+    ) -> jax.Array:
+        """Values [T] or [T, n] of T consecutive steps of one environment (obs [T, n, obs_dim],
+        global_state [T, state_dim], starts [T]) from the state `memory` before them."""
+        ...
+
+
+def is_recurrent(algorithm: Algorithm) -> bool:
+    """Whether `algorithm` acts from a carried state (`Recurrent`, its `recurrent` true)."""
+    return isinstance(algorithm, Recurrent) and algorithm.recurrent
+
+
+@dataclass(frozen=True)
+class Stateless:
+    """A feed-forward algorithm seen through `Recurrent`'s methods: an empty state, `act` and
+    `greedy` of each step alone, `value` of every step on its own."""
+
+    algorithm: Algorithm
+
+    @property
+    def recurrent(self) -> bool:
+        return False
+
+    def initial_memory(self) -> Any:
+        return ()
+
+    def act_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        key: jax.Array, global_state: jax.Array, start: jax.Array,
+    ) -> tuple[ActResult, Any]:
+        return self.algorithm.act(params, obs, action_mask, key, global_state), memory
+
+    def greedy_with_memory(
+        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
+        start: jax.Array,
+    ) -> tuple[jax.Array, Any]:
+        return self.algorithm.greedy(params, obs, action_mask), memory
+
+    def sequence_values(
+        self, params: Params, memory: Any, obs: jax.Array, global_state: jax.Array,
+        starts: jax.Array,
+    ) -> jax.Array:
+        values: jax.Array = jax.vmap(self.algorithm.value, in_axes=(None, 0, 0))(
+            params, obs, global_state)
+        return values
+
+
+def with_memory(algorithm: Algorithm) -> Recurrent:
+    """`algorithm` itself where it is recurrent (`is_recurrent`), else `Stateless(algorithm)`:
+    what the runners act, evaluate and compute sequence values through."""
+    if is_recurrent(algorithm):
+        return algorithm  # type: ignore[return-value]
+    return Stateless(algorithm)
+
+
 def initial_memories(algorithm: Algorithm, *batch: int) -> Any:
-    """`algorithm.initial_memory()` for every team of a batch of shape `batch` ([*batch, ...];
-    () for feed-forward algorithms)."""
+    """`with_memory(algorithm).initial_memory()` for every team of a batch of shape `batch`
+    ([*batch, ...]; () for feed-forward algorithms)."""
     return jax.tree.map(lambda x: jax.numpy.broadcast_to(x, (*batch, *jax.numpy.shape(x))),
-                        algorithm.initial_memory())
+                        with_memory(algorithm).initial_memory())
 
 
 def chunked(function: Callable[..., Any], chunks: int, out_axes: Any = 0) -> Callable[..., Any]:

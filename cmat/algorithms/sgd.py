@@ -162,15 +162,9 @@ def finetune_optimizer(
 
 class PPOAlgorithm:
     """The defaults of `cmat.algorithms.base.Algorithm`: `update` is `minibatch_sgd` on the
-    algorithm's own `loss`, feed-forward, no fine-tuning stages. Algorithms inherit it and
+    algorithm's own `loss`, no fine-tuning stages (a recurrent algorithm adds
+    `cmat.algorithms.base.Recurrent`'s methods). Algorithms inherit it and
     override what differs."""
-
-    @property
-    def recurrent(self) -> bool:
-        return False
-
-    def initial_memory(self) -> Any:
-        return ()
 
     def act(
         self, params: Params, obs: jax.Array, action_mask: jax.Array, key: jax.Array,
@@ -185,28 +179,6 @@ class PPOAlgorithm:
         self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
     ) -> jax.Array:
         raise NotImplementedError
-
-    def act_with_memory(
-        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
-        key: jax.Array, global_state: jax.Array, start: jax.Array,
-    ) -> tuple[ActResult, Any]:
-        """`act`, the (empty) memory unchanged."""
-        return self.act(params, obs, action_mask, key, global_state), memory
-
-    def greedy_with_memory(
-        self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
-        start: jax.Array,
-    ) -> tuple[jax.Array, Any]:
-        """`greedy`, the (empty) memory unchanged."""
-        return self.greedy(params, obs, action_mask), memory
-
-    def sequence_values(
-        self, params: Params, memory: Any, obs: jax.Array, global_state: jax.Array,
-        starts: jax.Array,
-    ) -> jax.Array:
-        """`value` of every step on its own."""
-        values: jax.Array = jax.vmap(self.value, in_axes=(None, 0, 0))(params, obs, global_state)
-        return values
 
     def loss(self, params: Params, batch: Batch, ppo: PPOConfig) -> tuple[jax.Array, Metrics]:
         raise NotImplementedError

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cmat.algorithms.base import Algorithm, Params, initial_memories
+from cmat.algorithms.base import Algorithm, Params, initial_memories, with_memory
 from cmat.envs.protocol import EnvSpec, MarlEnv, TimeStep
 from cmat.runners.collector import env_actions
 
@@ -108,8 +108,9 @@ def evaluate_in_graph(
     slots = min(episodes, max_slots)
     reset_key, rng = jax.random.split(rng)
     env_state, timestep = jax.vmap(env.reset)(jax.random.split(reset_key, slots))
-    greedy = jax.vmap(algorithm.greedy_with_memory, in_axes=(None, 0, 0, 0, 0))
-    act = jax.vmap(algorithm.act_with_memory, in_axes=(None, 0, 0, 0, 0, 0, 0))
+    stepper = with_memory(algorithm)
+    greedy = jax.vmap(stepper.greedy_with_memory, in_axes=(None, 0, 0, 0, 0))
+    act = jax.vmap(stepper.act_with_memory, in_axes=(None, 0, 0, 0, 0, 0, 0))
     memory = initial_memories(algorithm, slots)
     shares = split_evenly(episodes, slots)
     quota = jnp.asarray(shares, jnp.int32)

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cmat.algorithms import algorithm_entry
-from cmat.algorithms.base import ActResult, Params, initial_memories
+from cmat.algorithms.base import ActResult, Params, initial_memories, with_memory
 from cmat.config import TrainConfig
 from cmat.envs.host import default_workers, make_host_env
 from cmat.envs.host.pool import COUNTERS, InProcessPool, WorkerPool, make_pool
@@ -40,7 +40,7 @@ from cmat.runners.base import (
     stack_seeds,
     state_to_bytes,
 )
-from cmat.runners.collector import env_actions
+from cmat.runners.collector import env_actions, rollout_report
 from cmat.runners.devices import compiler_options
 from cmat.runners.evaluation import split_evenly, tally_result, tally_start, tally_step
 from cmat.runners.learner import (
@@ -73,7 +73,8 @@ def policy_step(
     envs = obs.shape[1]
     keys = jax.vmap(jax.random.split)(rng)
     act_keys = jax.vmap(lambda key: jax.random.split(key, envs))(keys[:, 1])
-    act = jax.vmap(jax.vmap(setup.algorithm.act_with_memory, in_axes=(None, 0, 0, 0, 0, 0, 0)))
+    stepper = with_memory(setup.algorithm)
+    act = jax.vmap(jax.vmap(stepper.act_with_memory, in_axes=(None, 0, 0, 0, 0, 0, 0)))
     acted, memory = act(params, memory, obs, mask, act_keys, global_state, start)
     return keys[:, 0], acted, env_actions(setup.spec, acted.actions), memory
 
@@ -84,13 +85,14 @@ def eval_step(
 ) -> tuple[jax.Array, Any]:
     """Evaluation actions to send for every environment of every seed, greedy or (`sample`)
     drawn from the policy with `key`, and the new state."""
+    stepper = with_memory(setup.algorithm)
     if sample:
         keys = jax.random.split(key, obs.shape[:2])
-        act = jax.vmap(jax.vmap(setup.algorithm.act_with_memory,
+        act = jax.vmap(jax.vmap(stepper.act_with_memory,
                                 in_axes=(None, 0, 0, 0, 0, 0, 0)), in_axes=(0, 0, 0, 0, 0, 0, 0))
         acted, memory = act(params, memory, obs, mask, keys, global_state, start)
         return env_actions(setup.spec, acted.actions), memory
-    greedy = jax.vmap(jax.vmap(setup.algorithm.greedy_with_memory, in_axes=(None, 0, 0, 0, 0)))
+    greedy = jax.vmap(jax.vmap(stepper.greedy_with_memory, in_axes=(None, 0, 0, 0, 0)))
     actions, memory = greedy(params, memory, obs, mask, start)
     return env_actions(setup.spec, actions), memory
 
@@ -123,6 +125,7 @@ class HostTrainer:
         self._eval_step = jax.jit(
             partial(eval_step, self.learner_setup, config.eval_actions == "sample"),
             compiler_options=options)
+        self._report = jax.jit(jax.vmap(rollout_report, in_axes=1))
         self._learn = jax.jit(
             jax.vmap(partial(learn, self.learner_setup), in_axes=(0, Rollout._make((1, 0, 0, 0)))),
             donate_argnums=0,
@@ -252,7 +255,7 @@ class HostTrainer:
         for _ in range(self.config.updates_per_log if updates is None else updates):
             learner, rollout = self.collect(learner)
             learner, metrics = self._learn(learner, rollout)
-            per_update.append(metrics)
+            per_update.append({**metrics, **self._report(rollout.steps)})
         state = TrainerState(learner, None)
         stacked = jax.tree.map(lambda *x: jnp.stack(x, axis=1), *per_update)
         numbers = {key: np.asarray(value) for key, value in self._summarise(stacked).items()}

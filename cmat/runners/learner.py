@@ -3,9 +3,11 @@
 `learn(setup, learner, rollout)` takes a rollout from any collector (the in-graph scan of
 `cmat.runners.collector`, the host pool of `cmat.runners.host`): GAE from the target critic
 V_φ- bootstrapped from the observation after the rollout, the algorithm's `update` (epochs ×
-minibatches of PPO, `cmat.algorithms.sgd`), the target critic's soft update and the rollout's
-episode sums (Algorithm 1). Its state is what a checkpoint must hold of the learning itself:
-parameters, target critic, optimizer state, value normaliser, random key and update count.
+minibatches of PPO, `cmat.algorithms.sgd`) and the target critic's soft update (Algorithm 1),
+with a check that the update stayed finite; the rollout's episode sums and the environment's
+faults are the collector's (`cmat.runners.collector.rollout_report`). Its state is what a
+checkpoint must hold of the learning itself: parameters, target critic, optimizer state, value
+normaliser, random key and update count.
 """
 
 from __future__ import annotations
@@ -21,11 +23,12 @@ import optax
 
 from cmat.algorithms import build_algorithm
 from cmat.algorithms import ppo as ppo_lib
-from cmat.algorithms.base import Algorithm, Batch, Params
+from cmat.algorithms.base import Algorithm, Batch, Params, is_recurrent, with_memory
 from cmat.algorithms.sgd import finetune_optimizer
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
-from cmat.runners.types import Rollout, Transition
+from cmat.runners.collector import ENV_FAULTS, all_finite
+from cmat.runners.types import Rollout
 
 
 @flax.struct.dataclass
@@ -119,10 +122,10 @@ def make_batch(
     steps = rollout.steps
     all_obs = jnp.concatenate([steps.obs, rollout.next_obs[None]], axis=0)
     all_states = jnp.concatenate([steps.global_state, rollout.next_global_state[None]], axis=0)
-    if setup.algorithm.recurrent:
+    if is_recurrent(setup.algorithm):
         all_starts = jnp.concatenate([steps.start, steps.done[-1:]], axis=0)
         values = jax.vmap(
-            setup.algorithm.sequence_values, in_axes=(None, 0, 1, 1, 1), out_axes=1
+            with_memory(setup.algorithm).sequence_values, in_axes=(None, 0, 1, 1, 1), out_axes=1
         )(learner.target_params, rollout.memory, all_obs, all_states, all_starts)
     else:
         values = critic_values(setup, learner.target_params, all_obs, all_states)
@@ -147,7 +150,7 @@ def make_batch(
         else:
             advantages = ppo_lib.normalize(advantages)
 
-    recurrent = setup.algorithm.recurrent
+    recurrent = is_recurrent(setup.algorithm)
 
     def arrange(x: jax.Array) -> jax.Array:
         """[T, envs, ...] -> samples [T·envs, ...], or sequences [envs, T, ...]."""
@@ -182,33 +185,21 @@ def optimise(
     )
 
 
-ROLLOUT_FAULTS = (
-    "non-finite environment reward", "non-finite environment observation",
-    "non-finite environment global state",
-    "an action mask that allows no action to a live agent (one with nothing to do must be "
-    "marked not alive)",
-    "non-finite loss", "non-finite gradient norm", "non-finite parameters",
-)
-"""What `fault_code` k > 0 names: ROLLOUT_FAULTS[k - 1]."""
+UPDATE_FAULTS = ("non-finite loss", "non-finite gradient norm", "non-finite parameters")
+"""What `update_fault_code` k > 0 names: UPDATE_FAULTS[k - 1]."""
+
+ROLLOUT_FAULTS = (*ENV_FAULTS, *UPDATE_FAULTS)
+"""What a `fault_code` of `summarise_updates` k > 0 names: ROLLOUT_FAULTS[k - 1]: the
+collector's checks of the environment first (`cmat.runners.collector.ENV_FAULTS`), as a bad
+value from it makes everything after it non-finite, then the update's."""
 
 
-def fault_code(metrics: dict[str, jax.Array], params: Params, steps: Transition) -> jax.Array:
-    """0 if the rollout's rewards, observations and global states are finite, every live agent
-    had an action to take, and the update's loss, gradient norm and new parameters are finite;
-    else 1 + the index in `ROLLOUT_FAULTS` of the first check that failed (the environment's
-    first, as a bad value from it makes everything after it non-finite; the loss and gradient
-    norm are means over the update's minibatch steps, so one bad step makes them non-finite).
-    A closed mask would otherwise train silently: the masked policy falls back to a uniform
-    draw over actions the environment said were not available."""
-    def finite(tree: Any) -> jax.Array:
-        return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)]))
-
-    live_can_act = jnp.all(~steps.alive | jnp.any(steps.action_mask, axis=-1))
-    checks = jnp.stack([
-        finite(steps.reward), finite(steps.obs), finite((steps.global_state, jnp.float32(0))),
-        live_can_act,
-        jnp.isfinite(metrics["loss"]), jnp.isfinite(metrics["grad_norm"]), finite(params),
-    ])
+def update_fault_code(metrics: dict[str, jax.Array], params: Params) -> jax.Array:
+    """0 if the update's loss, gradient norm and new parameters are finite, else 1 + the index
+    in `UPDATE_FAULTS` of the first check that failed (the loss and gradient norm are means
+    over the update's minibatch steps, so one bad step makes them non-finite)."""
+    checks = jnp.stack([jnp.isfinite(metrics["loss"]), jnp.isfinite(metrics["grad_norm"]),
+                        all_finite(params)])
     return jnp.where(jnp.all(checks), 0, 1 + jnp.argmin(checks)).astype(jnp.int32)
 
 
@@ -216,8 +207,9 @@ def learn(
     setup: LearnerSetup, learner: LearnerState, rollout: Rollout
 ) -> tuple[LearnerState, dict[str, jax.Array]]:
     """One update from one seed's rollout: GAE from the target critic, the algorithm's
-    `update`, the target critic's soft update (τ = ppo.target_tau) and the rollout's episode
-    sums (pooled by `summarise_updates`)."""
+    `update` and the target critic's soft update (τ = ppo.target_tau); its metrics with
+    `update_fault` (`update_fault_code`). The rollout's own report (episodes, environment
+    faults) is the collector's (`cmat.runners.collector.rollout_report`)."""
     value_norm, batch = make_batch(setup, learner, rollout)
     rng, update_key = jax.random.split(learner.rng)
     params, opt_state, metrics = optimise(
@@ -226,13 +218,9 @@ def learn(
     target_params = optax.incremental_update(
         params, learner.target_params, setup.config.ppo.target_tau
     )
-    steps = rollout.steps
     rollout_metrics = {
         "explained_variance": ppo_lib.explained_variance(batch.values, batch.targets),
-        "episodes": jnp.sum(steps.done),
-        "return_sum": jnp.sum(steps.finished_return),
-        "win_sum": jnp.sum(steps.won & steps.done),
-        "fault": fault_code(metrics, params, steps),
+        "update_fault": update_fault_code(metrics, params),
     }
     learner = LearnerState(
         params=params, target_params=target_params, opt_state=opt_state,
@@ -242,13 +230,16 @@ def learn(
 
 
 def summarise_updates(spec: EnvSpec, per_update: dict[str, jax.Array]) -> dict[str, jax.Array]:
-    """Metrics of updates stacked on a leading axis: losses averaged over the updates performed
+    """Metrics of updates stacked on a leading axis, each update's with its rollout's report
+    (`cmat.runners.collector.rollout_report`): losses averaged over the updates performed
     (`performed`, all where absent), episode sums pooled into the mean return and win rate of
     the episodes that ended in the span (NaN where none did). `fault_update` is the index of
-    the first update whose rollout or update failed a check of `fault_code` (-1 if none) and
-    `fault_code` which check."""
+    the first update whose rollout or update failed a check (-1 if none) and `fault_code`
+    which one (`ROLLOUT_FAULTS`)."""
     per_update = dict(per_update)
-    codes = per_update.pop("fault")
+    env_fault, update_fault = per_update.pop("env_fault"), per_update.pop("update_fault")
+    codes = jnp.where(env_fault > 0, env_fault,
+                      jnp.where(update_fault > 0, len(ENV_FAULTS) + update_fault, 0))
     performed = per_update.pop("performed", jnp.ones(codes.shape, bool))
     episodes = jnp.sum(per_update.pop("episodes"))
     return_sum = jnp.sum(per_update.pop("return_sum"))

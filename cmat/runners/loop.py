@@ -285,7 +285,7 @@ def stop_if_faulty(
     train: dict[str, np.ndarray], updates_before: int, base_seed: int, run_dir: RunDir
 ) -> None:
     """Raise `CmatError` naming the first update (1-based, counted over the run) and seed whose
-    rollout or update failed a check of `cmat.runners.learner.fault_code`, and the check; pops
+    rollout or update failed a check (`cmat.runners.learner.ROLLOUT_FAULTS`), and the check; pops
     the two flags from `train`."""
     from cmat.runners.learner import ROLLOUT_FAULTS
 

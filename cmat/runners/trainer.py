@@ -31,7 +31,7 @@ from cmat.runners.base import (
     stack_seeds,
     state_to_bytes,
 )
-from cmat.runners.collector import InGraphCollector
+from cmat.runners.collector import InGraphCollector, rollout_report
 from cmat.runners.devices import compiler_options, place, sharded_axis, to_host
 from cmat.runners.evaluation import evaluate_in_graph
 from cmat.runners.learner import LearnerSetup, build_learner, init_learner, learn, summarise_updates
@@ -71,12 +71,13 @@ def init_state(setup: TrainSetup, rng: jax.Array) -> TrainerState:
 def update_step(
     setup: TrainSetup, state: TrainerState
 ) -> tuple[TrainerState, dict[str, jax.Array]]:
-    """One PPO update of one seed: collect with the current parameters, then learn."""
+    """One PPO update of one seed: collect with the current parameters, then learn; the
+    update's metrics with the rollout's report."""
     assert state.envs is not None
     rng, rollout_key = jax.random.split(state.learner.rng)
     envs, rollout = setup.collector.collect(state.learner.params, state.envs, rollout_key)
     learner, metrics = learn(setup.learner, dataclasses.replace(state.learner, rng=rng), rollout)
-    return TrainerState(learner, envs), metrics
+    return TrainerState(learner, envs), {**metrics, **rollout_report(rollout.steps)}
 
 
 def run_updates(

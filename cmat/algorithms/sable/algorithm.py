@@ -140,12 +140,12 @@ class Sable(MAT):
 
     @property
     def recurrent(self) -> bool:
+        """The recurrent Sable's retention carries across steps; `FFSable` acts through
+        `cmat.algorithms.base.Stateless` instead."""
         return self.network.memory
 
     def initial_memory(self) -> Any:
-        """`SableCarry` with empty states (recurrent), else ()."""
-        if not self.recurrent:
-            return ()
+        """`SableCarry` with empty states."""
         return SableCarry(empty_memory(self.network.config), jnp.array(-1, jnp.int32))
 
     def act_step(
@@ -167,10 +167,6 @@ class Sable(MAT):
         self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
         key: jax.Array, global_state: jax.Array, start: jax.Array,
     ) -> tuple[ActResult, Any]:
-        if not self.recurrent:
-            return super().act_with_memory(
-                params, memory, obs, action_mask, key, global_state, start
-            )
         actions, log_probs, values, carry = self.act_step(
             params, memory, obs, action_mask, key, start
         )
@@ -180,8 +176,6 @@ class Sable(MAT):
         self, params: Params, memory: Any, obs: jax.Array, action_mask: jax.Array,
         start: jax.Array,
     ) -> tuple[jax.Array, Any]:
-        if not self.recurrent:
-            return super().greedy_with_memory(params, memory, obs, action_mask, start)
         actions, _, _, carry = self.act_step(params, memory, obs, action_mask, None, start)
         return actions, carry
 
@@ -191,8 +185,6 @@ class Sable(MAT):
     ) -> jax.Array:
         """Per-agent values [T, n] (their mean [T] without per-agent GAE) of one environment's
         steps, encoded from the carried state."""
-        if not self.recurrent:
-            return super().sequence_values(params, memory, obs, global_state, starts)
         carry = cast(SableCarry, memory)
         _, values, _ = cast(tuple[jax.Array, jax.Array, jax.Array], self.network.apply(
             params, obs, carry.memory, starts, step_positions(carry.position, starts),
