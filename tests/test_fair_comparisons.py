@@ -519,7 +519,8 @@ def test_fault_code_names_the_first_failed_check() -> None:
     good = {"loss": jnp.float32(1.0), "grad_norm": jnp.float32(1.0)}
     params = {"w": jnp.ones(3)}
     steps = Transition(**{name: jnp.zeros((4, 2)) for name in Transition._fields})
-    steps = steps._replace(alive=jnp.ones((4, 2), bool), action_mask=jnp.ones((4, 2, 3), bool))
+    steps = steps._replace(alive=jnp.ones((4, 2), bool), action_mask=jnp.ones((4, 2, 3), bool),
+                           done=jnp.zeros((4, 2), bool), won=jnp.zeros((4, 2), bool))
     nan = jnp.zeros((4, 2)).at[3, 1].set(jnp.nan)
     closed = steps.action_mask.at[2, 1].set(False)
     assert int(fault_code(good, params, steps)) == 0
