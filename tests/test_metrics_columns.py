@@ -17,7 +17,16 @@ from cmat.rundir import Row, RunDir
 pytestmark = pytest.mark.quick_compiles
 
 
-@pytest.mark.parametrize("algo", algorithm_names())
+OWN_METRICS = ("cmat", "pmat", "happo", "sable")
+"""The algorithms whose losses emit metrics of their own (consensus entropy, order term,
+per-agent phases, sequences), run in the fast suite; the others emit MAPPO's or MAT's set and
+run in the slow suite (15-25 s each on 2 cores, nearly all compiling)."""
+
+
+@pytest.mark.parametrize("algo", [
+    pytest.param(algo, marks=[] if algo in OWN_METRICS else pytest.mark.slow)
+    for algo in algorithm_names()
+])
 def test_every_emitted_metric_reaches_metrics_csv(
     algo: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
