@@ -9,6 +9,16 @@ from pathlib import Path
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "import_graph.py"
 
 
+def check_copy(root: Path) -> subprocess.CompletedProcess[str]:
+    """`import_graph.py --check` run from a copy under `root`, on the package `root/cmat`."""
+    copy = root / "scripts" / "import_graph.py"
+    copy.parent.mkdir()
+    copy.write_text(SCRIPT.read_text())
+    return subprocess.run(
+        [sys.executable, str(copy), "--check"], capture_output=True, text=True, check=False
+    )
+
+
 def test_no_upward_import_and_no_cycle() -> None:
     result = subprocess.run(
         [sys.executable, str(SCRIPT), "--check"], capture_output=True, text=True, check=False
@@ -24,12 +34,7 @@ def test_the_check_finds_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
         (init / "__init__.py").write_text("")
     (package / "networks" / "net.py").write_text("from cmat.algorithms.algo import X\n")
     (package / "algorithms" / "algo.py").write_text("def f():\n    import cmat.networks.net\n")
-    copy = tmp_path / "scripts" / "import_graph.py"
-    copy.parent.mkdir()
-    copy.write_text(SCRIPT.read_text())
-    result = subprocess.run(
-        [sys.executable, str(copy), "--check"], capture_output=True, text=True, check=False
-    )
+    result = check_copy(tmp_path)
     assert result.returncode == 1
     assert "upward import: cmat.networks.net -> cmat.algorithms.algo" in result.stdout
     assert "import cycle: cmat.algorithms.algo <-> cmat.networks.net" in result.stdout
@@ -46,12 +51,7 @@ def test_the_check_finds_algorithm_packages_that_import_each_other(tmp_path: Pat
         (init / "__init__.py").write_text("")
     (algorithms / "a" / "__init__.py").write_text("from cmat.algorithms import b\n")
     (algorithms / "b" / "algorithm.py").write_text("from cmat.algorithms.a.algorithm import X\n")
-    copy = tmp_path / "scripts" / "import_graph.py"
-    copy.parent.mkdir()
-    copy.write_text(SCRIPT.read_text())
-    result = subprocess.run(
-        [sys.executable, str(copy), "--check"], capture_output=True, text=True, check=False
-    )
+    result = check_copy(tmp_path)
     assert result.returncode == 1
     assert result.stdout.splitlines() == [
         "import cycle between algorithm packages: cmat.algorithms.a <-> cmat.algorithms.b"]
