@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, cast, runtime_checkable
 
 import jax
 import optax
@@ -243,7 +243,7 @@ def with_memory(algorithm: Algorithm) -> Recurrent:
     """`algorithm` itself where it is recurrent (`is_recurrent`), else `Stateless(algorithm)`:
     what the runners act, evaluate and compute sequence values through."""
     if is_recurrent(algorithm):
-        return algorithm  # type: ignore[return-value]
+        return cast(Recurrent, algorithm)
     return Stateless(algorithm)
 
 
