@@ -2,7 +2,7 @@
 
     python benchmarks/ab_throughput.py --before ../cmat-old --after . --algo cmat --algo mappo
     python benchmarks/ab_throughput.py --before OLD --after NEW --env smax:3m --pairs 3 \
-        --set ppo.joint_clip=joint ppo.target_tau=0.1
+        --set cmat.joint_clip=joint ppo.target_tau=0.1
     python benchmarks/ab_throughput.py --before . --after . --after-python \
         .venv-latest/bin/python --env smax:6h_vs_8z      # the same code on two JAX installs
 

@@ -13,8 +13,8 @@ steps/s, all of one seed's env steps over wall time; the point's figure is their
 reports its peak memory: the accelerator allocator's peak on a GPU, else the process's peak
 resident memory (which includes compilation). CMAT's decoder runs m
 iterations: the 'cmat' line sets the paper's m = n (cmat's own default fixes m for teams above
-32 agents, `cmat.config.LARGE_TEAM`, to m = 2, the 'cmat m=2' line); the 'cmat m=4' line
-fixes m = 4 to show what the knob buys.
+32 agents, `cmat.algorithms.cmat.options.LARGE_TEAM`, to m = 2, the 'cmat m=2' line); the
+'cmat m=4' line fixes m = 4 to show what the knob buys.
 
 Growth with the team: for each line, the exponent b of time per env step ∝ n^b is the
 least-squares slope of log(1 / steps/s) on log n over the line's points, and for every other
@@ -49,11 +49,11 @@ from typing import Any
 from machine import describe
 
 LINES = {
-    "cmat": ("cmat", ["network.consensus_iterations=n"]),
-    "cmat m=2": ("cmat", ["network.consensus_iterations=2"]),
-    "cmat m=4": ("cmat", ["network.consensus_iterations=4"]),
-    "cmat m=4 blocks": ("cmat", ["network.consensus_iterations=4",
-                                 "network.attention_block=128"]),
+    "cmat": ("cmat", ["cmat.consensus_iterations=n"]),
+    "cmat m=2": ("cmat", ["cmat.consensus_iterations=2"]),
+    "cmat m=4": ("cmat", ["cmat.consensus_iterations=4"]),
+    "cmat m=4 blocks": ("cmat", ["cmat.consensus_iterations=4",
+                                 "cmat.attention_block=128"]),
     "mat": ("mat", []),
     "mappo": ("mappo", []),
     "env only": ("env", []),

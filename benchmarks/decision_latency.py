@@ -15,9 +15,9 @@ batch). A point that fails or passes `--timeout` seconds (compile included) is r
 the reason.
 
 Lines: 'cmat m=n' is the paper's setting (m = number of agents), 'cmat m=2' what cmat runs on
-teams above 32 agents when m is unset (`cmat.config.LARGE_TEAM`), 'cmat m=5' the dispatch
-suite's setting (the CMAT authors' ride-sharing code used consensus length 5 on 1,000
-vehicles); 'sable' is the recurrent Sable (one decision from its initial memory), 'sable
+teams above 32 agents when m is unset (`cmat.algorithms.cmat.options.LARGE_TEAM`), 'cmat m=5'
+the dispatch suite's setting (the CMAT authors' ride-sharing code used consensus length 5 on
+1,000 vehicles); 'sable' is the recurrent Sable (one decision from its initial memory), 'sable
 (feed-forward)' Mava's ff_sable (results dated before 2026-12-06 call the feed-forward one
 'sable'); 'mat' and both Sables decode the agents one after another,
 'mappo' is one MLP per agent (fully parallel).
@@ -41,9 +41,9 @@ from typing import Any
 from machine import describe
 
 LINES = {
-    "cmat m=n": ("cmat", ["network.consensus_iterations=n"]),
-    "cmat m=2": ("cmat", ["network.consensus_iterations=2"]),
-    "cmat m=5": ("cmat", ["network.consensus_iterations=5"]),
+    "cmat m=n": ("cmat", ["cmat.consensus_iterations=n"]),
+    "cmat m=2": ("cmat", ["cmat.consensus_iterations=2"]),
+    "cmat m=5": ("cmat", ["cmat.consensus_iterations=5"]),
     "mat": ("mat", []),
     "sable": ("sable", []),
     "sable (feed-forward)": ("ff_sable", []),
@@ -62,7 +62,7 @@ team, algo, batch, calls, *extra = sys.argv[1:]
 batch, calls = int(batch), int(calls)
 config = load_config(overrides=[f"env=dispatch:grid-{team}-mid", f"algo={algo}", *extra])
 env = make_env(config.env, **config.env_kwargs)
-algorithm = build_algorithm(config.algo, config.network, env.spec, config.ppo)
+algorithm = build_algorithm(config.algo, config.network, env.spec, config.ppo, config.options)
 _, timestep = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(1), batch))
 params = algorithm.init(jax.random.PRNGKey(0), timestep.obs[0], timestep.action_mask[0])
 obs, mask = timestep.obs, timestep.action_mask

@@ -20,8 +20,8 @@ from cmat.resolve import load_config
 
 METHODS: dict[str, list[str]] = {
     "cmat": ["algo=cmat"],
-    "cmat-categorical": ["algo=cmat", "network.consensus_policy=categorical"],
-    "cmat-gaussian": ["algo=cmat", "network.consensus_policy=gaussian"],
+    "cmat-categorical": ["algo=cmat", "cmat.consensus_policy=categorical"],
+    "cmat-gaussian": ["algo=cmat", "cmat.consensus_policy=gaussian"],
     "mat": ["algo=mat"],
     "pmat": ["algo=pmat"],
     "triple_bert": ["algo=triple_bert"],

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from cmat.algorithms.cmat.network import CMATNetwork
+from cmat.algorithms.cmat.options import CMATOptions
 from cmat.algorithms.mat.network import MATNetwork
 from cmat.config import NetworkConfig
 
@@ -35,7 +36,7 @@ def gradient_cost(
     obs = jax.random.normal(jax.random.PRNGKey(0), (batch, agents, obs_dim))
     mask = jnp.ones((batch, agents, actions), bool)
     if algo == "cmat":
-        network = CMATNetwork(config, agents, actions, True)
+        network = CMATNetwork(config, CMATOptions(), agents, actions, True)
         params = network.init(jax.random.PRNGKey(1), obs[0], mask[0])
 
         def team_loss(p: dict, o: jax.Array, m: jax.Array) -> jax.Array:

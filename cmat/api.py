@@ -29,7 +29,8 @@ from os import PathLike
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from cmat.config import INT32_MAX, ConfigSources, TrainConfig, resolve_iterations, validate
+from cmat.algorithms.cmat.options import CMATOptions
+from cmat.config import INT32_MAX, ConfigSources, TrainConfig, validate
 from cmat.errors import CmatError
 from cmat.resolve import resolve_config
 from cmat.rundir import Checkpoint, RunDir
@@ -293,9 +294,8 @@ def evaluate_run(
     }
     if checkpoint == "best":
         extra["best_env_steps"] = (run_dir.checkpoint_header("best") or {})["best"]["env_steps"]
-    if config.algo == "cmat":
-        trained = resolve_iterations(config.network.consensus_iterations,
-                                     trainer.env_spec.num_agents)
+    if isinstance(config.options, CMATOptions):
+        trained = config.options.iterations(trainer.env_spec.num_agents)
         extra["consensus_iterations"] = trained
         if iterations is not None:
             trainer, state = with_eval_iterations(config, state, trained, iterations)
@@ -325,10 +325,11 @@ def with_eval_iterations(
         raise CmatError(
             f"--iterations must be in 0..{trained} (the m this run was trained with: the decoder "
             f"has positional embeddings for {trained} iterations); got {iterations}. "
-            f"Train with a larger network.consensus_iterations to evaluate more"
+            f"Train with a larger cmat.consensus_iterations to evaluate more"
         )
-    network = dataclasses.replace(config.network, consensus_iterations=iterations)
-    eval_trainer = build_trainer(dataclasses.replace(config, network=network))
+    assert isinstance(config.options, CMATOptions)
+    options = dataclasses.replace(config.options, consensus_iterations=iterations)
+    eval_trainer = build_trainer(dataclasses.replace(config, options=options))
     learner = dataclasses.replace(
         state.learner, params=with_iterations(state.learner.params, iterations)
     )

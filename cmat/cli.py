@@ -14,7 +14,6 @@ import os
 import sys
 import textwrap
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import NoReturn
 
@@ -29,15 +28,8 @@ from cmat.api import (
     train,
     train_into,
 )
-from cmat.config import (
-    FINETUNE_MODES,
-    INT32_MAX,
-    NESTED_FIELDS,
-    TrainConfig,
-    field_docs,
-    to_yaml,
-    validate,
-)
+from cmat.config import FINETUNE_MODES, INT32_MAX, TrainConfig, validate
+from cmat.configfile import field_docs, field_names, to_mapping, to_yaml
 from cmat.envs import probe_env
 from cmat.envs.suites import registry, suite_of
 from cmat.errors import CmatError
@@ -325,10 +317,10 @@ def config_command(args: argparse.Namespace) -> None:
         return
     unavailable = (probe_env(config.env, config.env_kwargs)[1] if args.check_env
                    else suite_of(config.env).unavailable(config.env))
-    docs = field_docs()
-    flat = {**{k: v for k, v in asdict(config).items() if k not in NESTED_FIELDS},
-            **{f"{section}.{k}": v for section in NESTED_FIELDS
-               for k, v in asdict(config)[section].items()}}
+    docs = field_docs(config.algo)
+    values = to_mapping(config)
+    flat = {name: values[name.partition(".")[0]][name.partition(".")[2]] if "." in name
+            else values[name] for name in field_names(config.algo)}
     read = {f"network.{name}" for name in algorithm_entry(config.algo).network_fields}
     for name, value in flat.items():
         unread = (f"; not read by {config.algo}"

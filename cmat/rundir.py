@@ -47,15 +47,8 @@ from typing import Any
 from tensorboardX import SummaryWriter
 
 from cmat.algorithms import check_config
-from cmat.config import (
-    ConfigSources,
-    TrainConfig,
-    field_names,
-    from_yaml,
-    read_sources,
-    to_yaml,
-    written_by,
-)
+from cmat.config import ConfigSources, TrainConfig
+from cmat.configfile import field_names, from_yaml, read_sources, to_yaml, written_by
 from cmat.errors import CmatError, read_text
 
 LOSS_COLUMNS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac")
@@ -267,7 +260,7 @@ class RunDir:
         sources = self.sources()
         if not sources:
             return None
-        for name in field_names():
+        for name in field_names(config.algo):
             sources.setdefault(name, "default (not in this run's earlier config.yaml)")
         if self.config().total_steps != config.total_steps:
             sources["total_steps"] = "command line (--resume --steps)"
@@ -583,17 +576,16 @@ def atomic_write_named(path: Path, data: bytes) -> None:
 
 
 def network_record(config: TrainConfig) -> dict[str, Any]:
-    """`config.network` as a checkpoint header records it (JSON values): the network its
-    parameters belong to (`RunDir.save_checkpoint`, `cmat.runners.base.restore_run`)."""
-    record: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(config.network)))
-    for name in EXECUTION_FIELDS:
-        record.pop(name, None)
-    return record
-
-
-EXECUTION_FIELDS = ("attention_block",)
-"""Network fields that change how the network computes, not what: not recorded, so that a run
-may change them."""
+    """`config.network` and the algorithm's options that shape its network
+    (`AlgorithmOptions.network_options`) as a checkpoint header records them, by field name in
+    one mapping (JSON values): the network its parameters belong to (`RunDir.save_checkpoint`,
+    `cmat.runners.base.restore_run`). The options that change how the network computes, not
+    what (`attention_block`), and the loss options are not recorded: a run may change them."""
+    options = config.options
+    record = {**dataclasses.asdict(config.network),
+              **{name: getattr(options, name) for name in options.network_options}}
+    recorded: dict[str, Any] = json.loads(json.dumps(record))
+    return recorded
 
 
 EVAL_PROTOCOL = 2

@@ -1,13 +1,15 @@
 """Pages of the documentation site generated at build time (mkdocs-gen-files; see mkdocs.yml).
 
 - `configuration.md` gets a reference appended: one table per config dataclass of
-  `cmat/config.py` (field, type, default, and the field's docstring, `cmat.config.field_docs`).
+  `cmat/config.py` and per algorithm's section (its `options.py`): field, type, default, and the
+  field's docstring (`cmat.configfile.field_docs`).
 - `suites.md` gets a table of every suite as `cmat/envs/suites.py` declares it.
 - `results/NAME/index.md` for every committed `experiments/results/NAME/results.md`, with the
   directory's figures (PNG, GIF) written next to it so that they show.
 
-`mkdocs build` runs it; it imports only `cmat.config` and `cmat.envs.suites`, which import
-neither JAX nor the networks.
+`mkdocs build` runs it; it imports only `cmat.config`, `cmat.configfile` (with the algorithms'
+registry entries and `options.py`) and `cmat.envs.suites`, which import neither JAX nor the
+networks.
 """
 
 from __future__ import annotations
@@ -27,13 +29,16 @@ LINK = re.compile(r"(!?)\[([^\]]*)\]\(([^)\s]+)\)")
 CODE_SPAN = re.compile(r"(`+)(.+?)\1")
 
 
-def cmat_modules() -> tuple[Any, Any]:
-    """`cmat.config` and `cmat.envs.suites` of this checkout (first on the path)."""
+def cmat_modules() -> tuple[Any, Any, Any, Any]:
+    """`cmat.config`, `cmat.configfile`, `cmat.algorithms` and `cmat.envs.suites` of this
+    checkout (first on the path)."""
     sys.path.insert(0, str(ROOT))
+    import cmat.algorithms
     import cmat.config
+    import cmat.configfile
     import cmat.envs.suites
 
-    return cmat.config, cmat.envs.suites
+    return cmat.config, cmat.configfile, cmat.algorithms, cmat.envs.suites
 
 
 def escape(text: str) -> str:
@@ -70,31 +75,43 @@ def default_text(field: dataclasses.Field[Any]) -> str:
 
 
 def config_reference() -> str:
-    config, _ = cmat_modules()
-    docs = config.field_docs()
-    sections = [("TrainConfig", "", "top-level keys"),
-                ("NetworkConfig", "network.", "`network.*`"),
-                ("PPOConfig", "ppo.", "`ppo.*`")]
+    config, configfile, algorithms, _ = cmat_modules()
+    docs = configfile.field_docs()
+    sections: list[tuple[type, tuple[str, ...], dict[str, str]]] = [
+        (config.TrainConfig, ("",), docs),
+        (config.NetworkConfig, ("network.",), docs),
+        (config.PPOConfig, ("ppo.",), docs),
+    ]
+    by_class: dict[type, list[str]] = {}
+    for algo, entry in algorithms.builtin_entries().items():
+        by_class.setdefault(entry.options, []).append(algo)
+    for cls, algos in by_class.items():
+        if dataclasses.fields(cls):  # an algorithm without options has no table
+            sections.append((cls, tuple(f"{algo}." for algo in algos),
+                             configfile.field_docs(algos[0])))
     lines = [
         "",
         "## Reference",
         "",
-        "Every field, generated from the dataclasses in `cmat/config.py` when this site was "
-        "built (the same text `cmat config` prints under each value). The defaults are the "
+        "Every field, generated from the dataclasses in `cmat/config.py` and the algorithms' "
+        "`options.py` when this site was built (the same text `cmat config` prints under each "
+        "value). A run's config holds the section of its algorithm only. The defaults are the "
         "dataclass layer only: the suite, the algorithm and a preset may set a field before "
         "your file and `--set` do (above).",
     ]
-    for name, prefix, keys in sections:
-        cls = getattr(config, name)
+    for cls, prefixes, section_docs in sections:
         summary = " ".join((cls.__doc__ or "").split())
-        lines += ["", f"### `{name}`: {keys}", "", escape(summary), "",
+        keys = ("top-level keys" if prefixes == ("",)
+                else ", ".join(f"`{prefix}*`" for prefix in prefixes))
+        lines += ["", f"### `{cls.__name__}`: {keys}", "", escape(summary), "",
                   "| field | type | default | meaning |", "|---|---|---|---|"]
         for field in dataclasses.fields(cls):
-            dotted = prefix + field.name
-            if dotted not in docs and dataclasses.is_dataclass(field.default_factory):
-                continue  # `network`, `ppo`: their own tables
-            lines.append(f"| `{dotted}` | {code(str(field.type))} | {default_text(field)} | "
-                         f"{escape(docs.get(dotted, ''))} |")
+            dotted = prefixes[0] + field.name
+            if dotted not in section_docs and dataclasses.is_dataclass(field.default_factory):
+                continue  # `network`, `ppo`, the algorithm's section: their own tables
+            names = ", ".join(f"`{prefix}{field.name}`" for prefix in prefixes)
+            lines.append(f"| {names} | {code(str(field.type))} | {default_text(field)} | "
+                         f"{escape(section_docs.get(dotted, ''))} |")
     return "\n".join(lines) + "\n"
 
 
@@ -109,7 +126,7 @@ def flat(values: dict[str, Any], prefix: str = "") -> list[str]:
 
 
 def suites_table() -> str:
-    _, suites = cmat_modules()
+    *_, suites = cmat_modules()
     lines = [
         "",
         "## As the code declares them",

@@ -21,7 +21,7 @@ LAYERS = {
     "cmat.config": 1, "cmat.envs": 1,
     "cmat.networks": 2,
     "cmat.algorithms": 3,
-    "cmat.resolve": 4, "cmat.rundir": 4, "cmat.plots": 4,
+    "cmat.configfile": 4, "cmat.resolve": 4, "cmat.rundir": 4, "cmat.plots": 4,
     "cmat.runners": 5,
     "cmat.experiments": 6, "cmat.policy": 6,
     "cmat.render": 7, "cmat.api": 7,

@@ -42,10 +42,10 @@ def spec(tmp_path: Path) -> ExperimentSpec:
                                 "envs": ["smax:3m", "smax:2s3z"], "label": "CMAT-ft"},
             "last": {"algos": ["cmat"], "figure": "ablation", "label": "last",
                      "envs": ["smax:3m", "smax:2s3z"],
-                     "set": {"network": {"consensus_source": "last"}}},
+                     "set": {"cmat": {"consensus_source": "last"}}},
             "m_half": {"algos": ["cmat"], "figure": "ablation", "label": "m = n/2",
                        "envs": ["smax:3m", "smax:2s3z"],
-                       "set": {"network": {"consensus_iterations": "n/2"}}},
+                       "set": {"cmat": {"consensus_iterations": "n/2"}}},
         },
     }))
     return load_spec(path)

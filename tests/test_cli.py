@@ -243,7 +243,7 @@ def test_interrupted_then_resumed_run_continues_without_duplicates(
          "invalid config: network: a section (set its keys as network.KEY=VALUE), got 64"),
         (["--env", "matrix:fig1", "--set", "ppo.epoch=3"],
          "invalid config: unknown key ppo.epoch. Did you mean: 'epochs'?"),
-        (["--env", "matrix:fig1", "--set", "network.consensus_iterations=-1"],
+        (["--env", "matrix:fig1", "--set", "cmat.consensus_iterations=-1"],
          "consensus_iterations (m) must be >= 0, got -1"),
         (["--env", "matrix:fig1", "--set", "network.n_embd=10", "network.n_head=3"],
          "n_embd (10) must be divisible by network.n_head (3)"),

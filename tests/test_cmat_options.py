@@ -12,6 +12,7 @@ import pytest
 
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
+from cmat.algorithms.cmat.options import CMATOptions
 from cmat.algorithms.ppo import clipped_surrogate_loss, joint_clip_range
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -40,10 +41,19 @@ def batch_for(algorithm, spread: float = 0.3) -> tuple[dict, Batch]:
     )
 
 
+NETWORK = NetworkConfig(n_embd=16, init_gain=1.0)
+
+
 @pytest.fixture(scope="module")
 def cmat_batch():
-    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=16, init_gain=1.0), SPEC)
+    algorithm = build_algorithm("cmat", NETWORK, SPEC)
     return (algorithm, *batch_for(algorithm))
+
+
+def with_options(**options: object):
+    """CMAT on the fixture's network with loss options of its section changed (the same
+    parameters: the loss options shape none)."""
+    return build_algorithm("cmat", NETWORK, SPEC, options=CMATOptions(**options))
 
 
 @pytest.mark.unit
@@ -64,8 +74,8 @@ def test_paper_options_give_the_papers_loss(cmat_batch) -> None:
 @pytest.mark.unit
 def test_per_agent_joint_clip_widens_the_range_to_the_kth_power(cmat_batch) -> None:
     algorithm, params, batch = cmat_batch
-    ppo = dataclasses.replace(PPOConfig(), joint_clip="per_agent")
-    _, metrics = jax.jit(algorithm.loss, static_argnums=2)(params, batch, ppo)
+    per_agent = with_options(joint_clip="per_agent")
+    _, metrics = jax.jit(per_agent.loss, static_argnums=2)(params, batch, PPOConfig())
     log_ratio, _, _ = jax.jit(algorithm.log_ratio)(params, batch)
     ratio = np.exp(np.asarray(log_ratio, np.float64))
     k = np.asarray(batch.alive).sum(axis=1)
@@ -95,8 +105,8 @@ def test_entropy_sum_is_the_joint_policys_entropy(cmat_batch) -> None:
     algorithm, params, batch = cmat_batch
     loss = jax.jit(algorithm.loss, static_argnums=2)
     mean = loss(params, batch, PPOConfig())[1]
-    summed = loss(params, batch, dataclasses.replace(
-        PPOConfig(), entropy_reduction="sum"))[1]
+    summed = jax.jit(with_options(entropy_reduction="sum").loss, static_argnums=2)(
+        params, batch, PPOConfig())[1]
     assert float(summed["entropy"]) == pytest.approx(4 * float(mean["entropy"]), rel=1e-6)
     assert float(summed["policy_loss"]) == float(mean["policy_loss"])
 
@@ -137,11 +147,11 @@ PAPER = {
     "ppo.clip_eps": 0.05, "ppo.ent_coef": 0.01, "ppo.value_coef": 1.0,
     "ppo.max_grad_norm": 10.0, "ppo.gamma": 0.99, "ppo.gae_lambda": 0.95,
     "ppo.value_norm": True, "ppo.huber_loss": True, "ppo.huber_delta": 10.0,
-    "ppo.clipped_value_loss": True, "ppo.target_tau": 0.1, "ppo.joint_clip": "joint",
-    "ppo.entropy_reduction": "mean", "ppo.target_kl": None, "ppo.active_masks": False,
+    "ppo.clipped_value_loss": True, "ppo.target_tau": 0.1, "options.joint_clip": "joint",
+    "options.entropy_reduction": "mean", "ppo.target_kl": None, "ppo.active_masks": False,
     "network.n_embd": 64, "network.n_head": 1, "network.n_block": 1,
-    "network.consensus_iterations": "n", "network.consensus_source": "mixture",
-    "network.consensus_policy": "deterministic", "network.init_gain": 0.01,
+    "options.consensus_iterations": "n", "options.consensus_source": "mixture",
+    "options.consensus_policy": "deterministic", "network.init_gain": 0.01,
     "network.log_std_init": 1.0,
 }
 """The paper's setting, written from the paper (the MAT SMAC hyper-parameters with 8 rollout
@@ -180,21 +190,23 @@ def test_the_paper_preset_takes_mats_column_of_the_suite() -> None:
 @pytest.mark.unit
 def test_cmats_default_is_the_tuned_setting_and_differs_from_the_papers_clip_and_tau() -> None:
     default, tuned = load_config(), load_config(overrides=["preset=tuned"])
-    assert (default.ppo.joint_clip, default.ppo.target_tau) == ("per_agent", 1.0)
+    assert (default.options.joint_clip, default.ppo.target_tau) == ("per_agent", 1.0)
     assert dataclasses.replace(tuned, preset=None) == default
-    paper_clip_and_tau = load_config(overrides=["ppo.joint_clip=joint", "ppo.target_tau=0.1"])
-    assert dataclasses.replace(default.ppo, joint_clip="joint", target_tau=0.1) == (
-        paper_clip_and_tau.ppo
-    )
-    assert dataclasses.replace(default, ppo=paper_clip_and_tau.ppo) == paper_clip_and_tau
-    triple_bert = load_config(overrides=["algo=triple_bert"]).ppo
-    assert (triple_bert.joint_clip, triple_bert.target_tau) == ("joint", 0.1)
+    paper_clip_and_tau = load_config(overrides=["cmat.joint_clip=joint", "ppo.target_tau=0.1"])
+    assert dataclasses.replace(
+        default, ppo=dataclasses.replace(default.ppo, target_tau=0.1),
+        options=dataclasses.replace(default.options, joint_clip="joint")) == paper_clip_and_tau
+    triple_bert = load_config(overrides=["algo=triple_bert"])
+    assert (triple_bert.options.joint_clip, triple_bert.ppo.target_tau) == ("joint", 0.1)
+    tuned_triple_bert = load_config(overrides=["algo=triple_bert", "preset=tuned"])
+    assert (tuned_triple_bert.options.joint_clip, tuned_triple_bert.ppo.target_tau) == (
+        "per_agent", 1.0)
     with pytest.raises(CmatError, match="unknown preset 'tuned' for mat; available: paper"):
         load_config(overrides=["preset=tuned", "algo=mat"])
 
 
 @pytest.mark.unit
-@pytest.mark.parametrize("override", ["ppo.joint_clip=geometric", "ppo.entropy_reduction=max",
+@pytest.mark.parametrize("override", ["cmat.joint_clip=geometric", "cmat.entropy_reduction=max",
                                       "ppo.target_kl=0", "ppo.target_kl=-1"])
 def test_bad_option_values_are_rejected(override: str) -> None:
     with pytest.raises(CmatError, match=override.split("=")[0]):
@@ -204,5 +216,5 @@ def test_bad_option_values_are_rejected(override: str) -> None:
 @pytest.mark.unit
 @pytest.mark.parametrize("algo", ["mat", "mappo"])
 def test_joint_options_are_for_joint_ratio_algorithms(algo: str) -> None:
-    with pytest.raises(CmatError, match="joint-ratio"):
-        load_config(overrides=[f"algo={algo}", "ppo.joint_clip=per_agent"])
+    with pytest.raises(CmatError, match=f"unknown key {algo}.joint_clip"):
+        load_config(overrides=[f"algo={algo}", f"{algo}.joint_clip=per_agent"])

@@ -11,17 +11,22 @@ import jax
 import numpy as np
 import pytest
 
-from cmat.algorithms import algorithm_entry, algorithm_names, build_algorithm
+import cmat
+from cmat.algorithms import algorithm_entry, algorithm_names, algorithm_options, build_algorithm
 from cmat.cli import main
-from cmat.config import NetworkConfig, field_docs, field_names
+from cmat.config import NetworkConfig
+from cmat.configfile import field_docs, field_names
 from cmat.envs import make_env
 
 pytestmark = pytest.mark.quick_compiles
 
-def test_every_config_field_has_a_docstring() -> None:
-    docs = field_docs()
-    missing = [name for name in field_names() if not docs.get(name)]
+@pytest.mark.parametrize("algo", algorithm_names())
+def test_every_config_field_has_a_docstring(algo: str) -> None:
+    docs = field_docs(algo)
+    missing = [name for name in field_names(algo) if not docs.get(name)]
     assert not missing, missing
+    assert any(name.startswith(f"{algo}.") for name in docs) == bool(
+        dataclasses.fields(algorithm_options(algo)))
 
 
 def test_config_shows_the_algorithms_reference_values_with_their_source(
@@ -34,7 +39,8 @@ def test_config_shows_the_algorithms_reference_values_with_their_source(
     assert "ppo.lr = 0.0001  [command line]" in out
     assert "ppo.lr = 0.0001  [command line]\n    Adam learning rate" in out
     fields = [line.split(" = ")[0] for line in out.splitlines() if not line.startswith((" ", "#"))]
-    assert fields == field_names()
+    assert fields == field_names("happo")
+    assert "happo.mlp_layers = 2  [default]" in out
     assert "# suite smax: MAT's SMAC scripts" in out
     assert main(["config", "--algo", "mappo", "--env", "smax:5m_vs_6m"]) == 0
     out = capsys.readouterr().out
@@ -66,10 +72,7 @@ def test_config_with_an_unknown_algorithm_is_one_error(
 
 
 CHANGED_NETWORK_FIELDS = {
-    "n_embd": 32, "n_head": 2, "n_block": 2, "compressor_heads": 2, "consensus_iterations": 1,
-    "consensus_source": "last", "consensus_policy": "categorical", "consensus_codes": 4,
-    "latent_head_gain": 0.5, "init_gain": 0.5, "log_std_init": 0.0,
-    "retention_decay": 0.5, "retention_chunk": 1, "mlp_layers": 3, "attention_block": 1,
+    "n_embd": 32, "n_head": 2, "n_block": 2, "init_gain": 0.5, "log_std_init": 0.0,
 }
 
 
@@ -108,7 +111,7 @@ def test_config_marks_the_network_fields_an_algorithm_does_not_read(
     assert main(["config", "--algo", "cmat"]) == 0
     unread = [line.split(" = ")[0] for line in capsys.readouterr().out.splitlines()
               if "not read by cmat" in line]
-    assert unread == ["network.mlp_layers", "network.retention_decay", "network.retention_chunk"]
+    assert unread == []
 
 
 def test_explain_lists_every_layer_of_a_key_and_the_last_wins(
@@ -136,3 +139,41 @@ def test_explain_lists_every_layer_of_a_key_and_the_last_wins(
     assert len(lines) == len(explain("ppo.epochs", file, ["algo=mappo", "env=smax:5m_vs_6m"]))
     assert main(["config", "--explain", "ppo.epoch"]) == 2
     assert "did you mean 'ppo.epochs'?" in capsys.readouterr().err
+
+
+@pytest.mark.unit
+def test_an_algorithms_section_is_named_by_it_and_explained_layer_by_layer() -> None:
+    """The dispatch suite sets m for CMAT only (`cmat:` in its settings); the paper preset
+    and the command line set it again; another algorithm's run never sees that section."""
+    from cmat.resolve import explain, resolve_config
+
+    overrides = ["env=dispatch:grid-100-mid", "preset=paper", "cmat.consensus_iterations=3"]
+    rows = explain("cmat.consensus_iterations", None, overrides)
+    assert rows == [("default", None), ("suite dispatch", 5), ("preset paper", "n"),
+                    ("command line", 3)]
+    config, sources = resolve_config(None, overrides)
+    assert config.options.consensus_iterations == 3
+    assert sources["cmat.consensus_iterations"] == "command line"
+    mat, sources = resolve_config(None, ["env=dispatch:grid-100-mid", "algo=mat"])
+    assert type(mat.options).__name__ == "MATOptions"
+    assert not any(name.startswith("cmat.") for name in sources)
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize(("overrides", "message"), [
+    (["algo=mat", "cmat.consensus_iterations=2"],
+     "cmat.consensus_iterations is an option of cmat, and this run's algo is mat"),
+    (["algo=mappo", "ppo.joint_clip=per_agent"], "unknown key ppo.joint_clip"),
+    (["algo=cmat", "cmat.consensus_iteration=2"], "unknown key cmat.consensus_iteration"),
+    (["algo=sable", "sable.retention_chunk=abc"],
+     "sable.retention_chunk: expected an integer, got 'abc'"),
+    (["algo=ff_sable", "ff_sable.retention_chunk=4"], "unknown key ff_sable.retention_chunk"),
+    (["algo=pmat", "pmat.order_loss_coef=-1"], "pmat.order_loss_coef must be in [0.0, inf)"),
+    (["algo=happo", "happo=3"], "happo: a section (set its keys as happo.KEY=VALUE), got 3"),
+])
+def test_a_bad_section_key_is_one_line_naming_it(overrides: list[str], message: str) -> None:
+    from cmat.resolve import load_config
+
+    with pytest.raises(cmat.CmatError) as raised:
+        load_config(overrides=overrides)
+    assert message in str(raised.value) and "\n" not in str(raised.value)

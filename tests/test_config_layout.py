@@ -1,5 +1,6 @@
-"""Run directories of an earlier config layout (cmat.config.CONFIG_LAYOUT) still load: layout 1
-chose Sable's variant with `network.recurrent`, layout 2 names it by the algorithm."""
+"""Run directories of an earlier config layout (cmat.configfile.CONFIG_LAYOUT) still load: layout
+1 chose Sable's variant with `network.recurrent`, layout 2 named it by the algorithm and kept the
+algorithms' own options in the shared sections, layout 3 in the algorithm's."""
 
 from __future__ import annotations
 
@@ -11,18 +12,52 @@ import pytest
 import yaml
 
 import cmat
+from cmat.algorithms import algorithm_names
 from cmat.cli import main
-from cmat.config import CONFIG_LAYOUT, TrainConfig, from_yaml, layout, to_yaml
+from cmat.config import TrainConfig
+from cmat.configfile import CONFIG_LAYOUT, MOVED, from_yaml, layout, to_mapping, to_yaml
+from cmat.resolve import load_config
 
 pytestmark = pytest.mark.quick_compiles
+
+
+def layout_2(config: TrainConfig) -> dict[str, object]:
+    """`config` as layout 2 held it: every field of `MOVED` in the shared sections, those the
+    algorithm does not have at their layout-2 defaults."""
+    loaded = to_mapping(config)
+    own = loaded.pop(config.algo)
+    unread = {"network": {"mlp_layers": 2, "compressor_heads": 4, "consensus_iterations": None,
+                          "consensus_source": "mixture", "consensus_policy": "deterministic",
+                          "consensus_codes": 8, "latent_head_gain": 1.0, "retention_decay": 0.8,
+                          "retention_chunk": None, "attention_block": 0},
+              "ppo": {"per_agent_gae": False, "joint_clip": "joint", "entropy_reduction": "mean",
+                      "consensus_ent_coef": 0.01, "order_loss_coef": 1.0,
+                      "order_in_loss": "sampled"}}
+    for section, moved in MOVED.items():
+        assert set(moved) == set(unread[section])
+        loaded[section] |= {name: own.get(name, unread[section][name]) for name in moved}
+    return loaded
 
 
 def layout_1(config: TrainConfig, **network: object) -> str:
     """`config` as cmat wrote config.yaml before layout 2: no layout line, every network field
     including `recurrent`."""
-    loaded = yaml.safe_load(to_yaml(config))
-    loaded["network"].update(network)
+    loaded = layout_2(config)
+    loaded["network"].update(network)  # type: ignore[attr-defined]
     return "# written by cmat 0.1.0\n" + yaml.safe_dump(loaded, sort_keys=False)
+
+
+@pytest.mark.parametrize("algo", algorithm_names())
+@pytest.mark.unit
+def test_a_layout_2_config_reads_as_todays(algo: str) -> None:
+    """Each algorithm's own options move from the shared sections into its section, with their
+    values; the options of other algorithms that layout 2 held (unread) are dropped."""
+    overrides = [f"algo={algo}", "env=smax:3m", "network.n_embd=32", "ppo.lr=1e-4"]
+    config = load_config(overrides=overrides)
+    text = "# written by cmat 0.2.0\n# config layout 2\n" + yaml.safe_dump(layout_2(config))
+    assert layout(text) == 2
+    assert from_yaml(text) == config
+    assert from_yaml(to_yaml(config)) == config
 
 
 @pytest.mark.parametrize(("algo", "recurrent", "now"), [

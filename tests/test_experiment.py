@@ -540,7 +540,7 @@ SPEC = {"steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"]}
         ({"seeds": "many"}, "seeds must be an integer, got 'many'"),
         ({"set": ["ppo.nope=1"]},
          "matrix:fig1 / default / cmat: invalid config: unknown key ppo.nope"),
-        ({"set": {"network": {"consensus_iterations": "3n"}}}, "must be >= 0, got '3n'"),
+        ({"set": {"cmat": {"consensus_iterations": "3n"}}}, "must be >= 0, got '3n'"),
         ({"variants": {"ft": {"finetune": "action"}}}, "needs both 'from' (a variant) and"),
         ({"variants": {"a": {}, "ft": {"from": "b", "finetune": "action"}}},
          "from names no variant: 'b'"),
@@ -676,18 +676,18 @@ def test_specs_name_cmats_paper_setting_or_its_default(tmp_path: Path) -> None:
     paper = make_plan(load_spec("paper_main"), tmp_path / "a")
     cmat_runs = [run.config for run in paper.runs if run.algo == "cmat" and run.config]
     assert cmat_runs and all(
-        (c.preset, c.ppo.joint_clip, c.ppo.target_tau, c.num_envs) == ("paper", "joint", 0.1, 8)
+        (c.preset, c.options.joint_clip, c.ppo.target_tau, c.num_envs) == ("paper", "joint", 0.1, 8)
         for c in cmat_runs
     )
     study = make_plan(load_spec("cmat_speed_study"), tmp_path / "b")
-    lines = {run.variant.name: (run.config.ppo.joint_clip, run.config.ppo.target_tau)
+    lines = {run.variant.name: (run.config.options.joint_clip, run.config.ppo.target_tau)
              for run in study.runs if run.algo == "cmat" and run.config}
     assert lines == {
         "per_agent_clip_tau_one": ("per_agent", 1.0), "paper_clip_and_tau": ("joint", 0.1),
         "per_agent_clip": ("per_agent", 0.1), "tau_one": ("joint", 1.0),
     }
-    default = load_config(overrides=["env=smax:6h_vs_8z"]).ppo
-    assert (default.joint_clip, default.target_tau) == lines["per_agent_clip_tau_one"]
+    default = load_config(overrides=["env=smax:6h_vs_8z"])
+    assert (default.options.joint_clip, default.ppo.target_tau) == lines["per_agent_clip_tau_one"]
 
 
 def test_a_variant_restricted_to_some_envs_plans_and_aggregates_only_there(
@@ -740,10 +740,10 @@ def test_the_ablation_draws_the_tasks_its_variants_are_compared_on(tmp_path: Pat
         "variants": {
             "default": {"figure": ["main", "ablation"]},
             "m0": {"algos": ["cmat"], "figure": "ablation", "envs": ["matrix:penalty"],
-                   "set": {"network": {"consensus_iterations": 0}}},
+                   "set": {"cmat": {"consensus_iterations": 0}}},
             "last": {"algos": ["cmat"], "figure": "ablation",
                      "envs": ["matrix:penalty", "matrix:climbing"],
-                     "set": {"network": {"consensus_source": "last"}}},
+                     "set": {"cmat": {"consensus_source": "last"}}},
             "mat_only": {"algos": ["mat"], "figure": "ablation", "envs": ["matrix:fig1"]},
         },
     }))

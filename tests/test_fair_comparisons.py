@@ -53,8 +53,9 @@ REFERENCE = {
     "sable": (1.0, False, True),
     "ff_sable": (1.0, False, True),
 }
-"""algo -> (ppo.target_tau, ppo.active_masks, ppo.per_agent_gae) of its reference (CMAT: its
-default, the learning-speed study's setting)."""
+"""algo -> (ppo.target_tau, ppo.active_masks, ALGO.per_agent_gae) of its reference (CMAT: its
+default, the learning-speed study's setting; False where the algorithm has no per-agent
+values)."""
 
 
 def one_error_line(stderr: str) -> str:
@@ -74,9 +75,8 @@ def spec(n: int = 3, discrete: bool = True, state_dim: int = 0) -> EnvSpec:
 @pytest.mark.parametrize("algo", sorted(REFERENCE))
 def test_each_algorithm_gets_its_reference_defaults(algo: str) -> None:
     config = load_config(overrides=[f"algo={algo}"])
-    assert (config.ppo.target_tau, config.ppo.active_masks, config.ppo.per_agent_gae) == (
-        REFERENCE[algo]
-    )
+    per_agent_gae = getattr(config.options, "per_agent_gae", False)
+    assert (config.ppo.target_tau, config.ppo.active_masks, per_agent_gae) == REFERENCE[algo]
     overridden = load_config(overrides=[f"algo={algo}", "ppo.target_tau=0.5"])
     assert overridden.ppo.target_tau == 0.5
 
@@ -95,12 +95,11 @@ def test_pmat_trains_as_its_smac_script() -> None:
     from cmat.errors import CmatError
 
     config = load_config(overrides=["algo=pmat", "env=smax:3m"])
-    assert (config.ppo.order_loss_coef, config.ppo.order_in_loss) == (1e-4, "index")
-    assert load_config(overrides=["algo=mat"]).ppo.order_in_loss == "sampled"
-    with pytest.raises(CmatError, match=r"ppo\.order_in_loss=index applies to the sampled-order"):
-        load_config(overrides=["algo=mat", "ppo.order_in_loss=index"])
-    with pytest.raises(CmatError, match=r"ppo\.order_in_loss must be one of sampled, index"):
-        load_config(overrides=["algo=pmat", "ppo.order_in_loss=random"])
+    assert (config.options.order_loss_coef, config.options.order_in_loss) == (1e-4, "index")
+    with pytest.raises(CmatError, match=r"unknown key mat\.order_in_loss"):
+        load_config(overrides=["algo=mat", "mat.order_in_loss=index"])
+    with pytest.raises(CmatError, match=r"pmat\.order_in_loss must be one of sampled, index"):
+        load_config(overrides=["algo=pmat", "pmat.order_in_loss=random"])
 
 
 def test_a_run_that_masked_mats_value_loss_is_not_reused() -> None:
@@ -139,14 +138,14 @@ def test_mappo_takes_its_per_map_smac_script_values(env: str) -> None:
 
 def test_happo_takes_harls_tuned_config_of_the_map() -> None:
     tuned = load_config(overrides=["algo=happo", "env=smax:3s5z_vs_3s6z"])
-    assert (tuned.network.n_embd, tuned.network.mlp_layers, tuned.ppo.clip_eps,
+    assert (tuned.network.n_embd, tuned.options.mlp_layers, tuned.ppo.clip_eps,
             tuned.ppo.gamma, tuned.ppo.epochs, tuned.ppo.num_minibatches) == (
         64, 3, 0.1, 0.95, 5, 2)
     untuned = load_config(overrides=["algo=happo", "env=smax:2s3z"])
-    assert (untuned.network.n_embd, untuned.network.mlp_layers, untuned.ppo.clip_eps,
+    assert (untuned.network.n_embd, untuned.options.mlp_layers, untuned.ppo.clip_eps,
             untuned.ppo.gamma) == (128, 2, 0.2, 0.99)
     other = load_config(overrides=["algo=mappo", "env=smax:3s5z_vs_3s6z"])
-    assert (other.network.mlp_layers, other.ppo.gamma) == (2, 0.99)
+    assert (other.options.mlp_layers, other.ppo.gamma) == (2, 0.99)
 
 
 def test_happo_builds_the_mlp_depth_it_is_given() -> None:
@@ -342,24 +341,26 @@ def test_active_masks_remove_a_dead_agent_from_every_mean(algo: str) -> None:
     agents' values too, tested below; MAPPO's team value has no agent to leave out). PMAT's
     order term averages every agent's advantage, as its reference does (tests/test_mat.py), so
     the comparison of totals leaves that term out."""
-    ppo = load_config(overrides=[f"algo={algo}"]).ppo
+    config = load_config(overrides=[f"algo={algo}"])
+    ppo, options = config.ppo, config.options
     assert ppo.active_masks
     ppo = dataclasses.replace(ppo, value_active_masks=True)
-    network = load_config(overrides=[f"algo={algo}"]).network
-    algorithm = build_algorithm(algo, network, spec(), ppo)
-    params, batch = dead_agent_batch(algorithm, 3, ppo.per_agent_gae)
+    per_agent_gae = getattr(options, "per_agent_gae", False)
+    algorithm = build_algorithm(algo, config.network, spec(), ppo, options)
+    params, batch = dead_agent_batch(algorithm, 3, per_agent_gae)
     loss = jax.jit(algorithm.loss, static_argnums=2)
     base, metrics = loss(params, batch, ppo)
-    changed, changed_metrics = loss(params, perturb_dead_agent(batch, ppo.per_agent_gae), ppo)
+    changed, changed_metrics = loss(params, perturb_dead_agent(batch, per_agent_gae), ppo)
+    order_loss_coef = getattr(options, "order_loss_coef", 0.0)
 
     def without_order_term(total: jax.Array, metrics: dict[str, jax.Array]) -> float:
-        return float(total) - ppo.order_loss_coef * float(metrics.get("order_loss", 0.0))
+        return float(total) - order_loss_coef * float(metrics.get("order_loss", 0.0))
 
     assert without_order_term(changed, changed_metrics) == pytest.approx(
         without_order_term(base, metrics), rel=1e-5, abs=1e-6)
     for name in ("policy_loss", "entropy", "value_loss"):
         assert float(changed_metrics[name]) == pytest.approx(float(metrics[name]), abs=1e-6)
-    if ppo.per_agent_gae:
+    if per_agent_gae:
         reference = dataclasses.replace(ppo, value_active_masks=False)
         _, kept = loss(params, batch, reference)
         _, kept_changed = loss(params, perturb_dead_agent(batch, True), reference)
@@ -367,7 +368,7 @@ def test_active_masks_remove_a_dead_agent_from_every_mean(algo: str) -> None:
         assert abs(float(kept_changed["value_loss"]) - float(kept["value_loss"])) > 1e-3
     unmasked = dataclasses.replace(ppo, active_masks=False)
     off, _ = loss(params, batch, unmasked)
-    off_changed, _ = loss(params, perturb_dead_agent(batch, ppo.per_agent_gae), unmasked)
+    off_changed, _ = loss(params, perturb_dead_agent(batch, per_agent_gae), unmasked)
     assert abs(float(off_changed) - float(off)) > 1e-3
 
 
@@ -406,7 +407,7 @@ def test_mat_gae_runs_per_agent_on_each_agents_value(per_agent: bool) -> None:
     config = load_config(overrides=[
         "env=mpe:simple_spread", "algo=mat", "num_envs=2", "rollout_length=6",
         "ppo.normalize_advantages=false", "ppo.value_norm=false",
-        f"ppo.per_agent_gae={str(per_agent).lower()}",
+        f"mat.per_agent_gae={str(per_agent).lower()}",
     ])
     setup = build_setup(config)
     state = jax.jit(lambda key: init_state(setup, key))(jax.random.PRNGKey(0))
@@ -471,8 +472,8 @@ def test_without_a_global_state_the_critic_reads_all_observations() -> None:
 # ------------------------------------------------------------------------- numerical safety
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 def test_a_joint_log_ratio_of_100_over_27_agents_stays_finite(sign: float) -> None:
-    config = load_config(overrides=["network.n_embd=16", "network.consensus_iterations=1"])
-    algorithm = build_algorithm("cmat", config.network, spec(n=27))
+    config = load_config(overrides=["network.n_embd=16", "cmat.consensus_iterations=1"])
+    algorithm = build_algorithm("cmat", config.network, spec(n=27), options=config.options)
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     obs = jax.random.normal(keys[0], (4, 27, 6))
     mask = jnp.ones((4, 27, 4), bool)
@@ -634,8 +635,8 @@ def test_eval_reports_the_budget(tmp_path: Path, capsys: pytest.CaptureFixture[s
 @pytest.mark.parametrize("override", [
     "ppo.max_grad_norm=0", "ppo.max_grad_norm=-1", "ppo.clip_eps=0", "ppo.adam_eps=-1",
     "ppo.huber_delta=0", "ppo.clip_eps=1.5", "ppo.ent_coef=-0.1", "ppo.value_coef=-1",
-    "ppo.lr=nan", "ppo.gamma=inf", "network.init_gain=0", "ppo.order_loss_coef=-1",
-    "ppo.clip_eps=1.0", "network.retention_chunk=0",
+    "ppo.lr=nan", "ppo.gamma=inf", "network.init_gain=0", "cmat.consensus_ent_coef=-1",
+    "ppo.clip_eps=1.0", "cmat.latent_head_gain=0", "cmat.attention_block=-1",
 ])
 def test_out_of_range_numbers_are_one_error_line(
     override: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -664,8 +665,10 @@ def test_one_sample_per_update_is_an_error_not_a_run_that_never_learns(
 def test_per_agent_gae_is_for_per_agent_values_only() -> None:
     from cmat.errors import CmatError
 
-    with pytest.raises(CmatError, match="per_agent_gae"):
-        load_config(overrides=["algo=cmat", "ppo.per_agent_gae=true"])
+    with pytest.raises(CmatError, match=r"unknown key cmat\.per_agent_gae"):
+        load_config(overrides=["algo=cmat", "cmat.per_agent_gae=true"])
+    with pytest.raises(CmatError, match=r"unknown key ppo\.per_agent_gae"):
+        load_config(overrides=["algo=mat", "ppo.per_agent_gae=true"])
 
 
 def test_a_checkpoint_missing_a_state_field_names_it() -> None:
@@ -689,7 +692,7 @@ def test_a_checkpoint_missing_a_state_field_names_it() -> None:
 
 def test_ppo_config_defaults_are_the_papers() -> None:
     ppo = PPOConfig()
-    assert (ppo.target_tau, ppo.active_masks, ppo.per_agent_gae) == (0.1, False, False)
+    assert (ppo.target_tau, ppo.active_masks) == (0.1, False)
 
 
 # --------------------------------------------------------------------------- host environments

@@ -16,8 +16,15 @@ import yaml
 from cmat.algorithms.cmat.algorithm import CMAT
 from cmat.algorithms.cmat.blocks import CMAT_BLOCKS, FINETUNE_TRAINABLE, with_iterations
 from cmat.algorithms.cmat.network import ConsensusDecoder
+from cmat.algorithms.cmat.options import (
+    LARGE_TEAM,
+    LARGE_TEAM_ITERATIONS,
+    CMATOptions,
+    resolve_iterations,
+)
 from cmat.cli import main
-from cmat.config import LARGE_TEAM, LARGE_TEAM_ITERATIONS, NetworkConfig, resolve_iterations
+from cmat.config import NetworkConfig
+from cmat.configfile import CONFIG_LAYOUT
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.layers import Compressor
 from cmat.resolve import load_config
@@ -105,12 +112,12 @@ def test_resumed_finetuning_keeps_its_mask(
                    for b, a in zip(leaves(before[name]), leaves(after[name])))
 
 
-def as_algorithm(config: dict, algo: str) -> dict:
-    """A CMAT run's config.yaml contents made another algorithm's: `algo` set and CMAT's
-    per-agent clip (its default, an option other algorithms reject) back to the plain clip."""
-    if algo == "cmat":
-        return config
-    return {**config, "algo": algo, "ppo": {**config["ppo"], "joint_clip": "joint"}}
+def as_algorithm(config: dict, algo: str) -> str:
+    """A CMAT run's config.yaml contents made another algorithm's (`algo` set, CMAT's section
+    replaced by the other algorithm's defaults), as config.yaml text of today's layout."""
+    if algo != "cmat":
+        config = {**{k: v for k, v in config.items() if k != "cmat"}, "algo": algo, algo: {}}
+    return f"# config layout {CONFIG_LAYOUT}\n" + yaml.safe_dump(config)
 
 
 @pytest.mark.parametrize(
@@ -118,6 +125,8 @@ def as_algorithm(config: dict, algo: str) -> dict:
     [
         ({"algo": "mat"}, [], "is supported only for algo cmat, got 'mat'"),
         ({}, ["--set", "network.n_embd=32"], "fine-tuning cannot change network"),
+        ({}, ["--set", "cmat.compressor_heads=2"],
+         "fine-tuning cannot change cmat.compressor_heads"),
         ({}, ["--set", "seeds=3"], "fine-tuning cannot change seeds"),
         ({}, ["--set", "algo=mat"], "fine-tuning cannot change algo"),
         ({}, ["--set", "finetune=consensus"], "--set finetune: a fine-tuning stage is named by"),
@@ -131,7 +140,7 @@ def test_bad_finetuning_is_one_error_line(
     source = Path(shutil.copytree(base, tmp_path / "source"))
     config = yaml.safe_load((source / "config.yaml").read_text())
     edited = {**config, **edit}
-    (source / "config.yaml").write_text(yaml.safe_dump(as_algorithm(edited, edited["algo"])))
+    (source / "config.yaml").write_text(as_algorithm(edited, edited["algo"]))
     out = tmp_path / "out"
     assert main(["finetune", "--from", str(source), "--mode", "action", "--out", str(out),
                  *args]) == 2
@@ -162,19 +171,19 @@ def test_large_teams_default_to_a_fixed_m(m: object, agents: int, expected: int)
     """Unset m is n up to LARGE_TEAM agents and LARGE_TEAM_ITERATIONS above; an m set
     explicitly ('n' as in --preset paper, or a number) is kept at any size."""
     assert resolve_iterations(m, agents) == expected
-    assert load_config(overrides=["preset=paper"]).network.consensus_iterations == "n"
+    assert load_config(overrides=["preset=paper"]).options.consensus_iterations == "n"
 
 
 @pytest.mark.parametrize("value", ["n/2", "2n", "n", "0", "7"])
 def test_iterations_parse_from_overrides(value: str) -> None:
-    config = load_config(overrides=[f"network.consensus_iterations={value}"])
-    assert config.network.consensus_iterations == (int(value) if value.isdigit() else value)
+    config = load_config(overrides=[f"cmat.consensus_iterations={value}"])
+    assert config.options.consensus_iterations == (int(value) if value.isdigit() else value)
 
 
 def test_bad_iterations_are_one_error_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["train", "--env", "matrix:fig1", "--set", "network.consensus_iterations=3n",
+    assert main(["train", "--env", "matrix:fig1", "--set", "cmat.consensus_iterations=3n",
                  "--out", str(tmp_path / "x")]) == 2
     assert "must be >= 0, got '3n' (or one of n, n/2, 2n" in one_error_line(capsys.readouterr().err)
 
@@ -182,8 +191,9 @@ def test_bad_iterations_are_one_error_line(
 @pytest.mark.parametrize("source", ["mixture", "last"])
 def test_stopping_the_refinement_early_equals_the_first_iterations(source: str) -> None:
     spec = EnvSpec("test", 2, 5, 3, True, 10, False)
-    network_config = NetworkConfig(n_embd=16, consensus_iterations="2n", consensus_source=source)
-    full = CMAT.build(network_config, spec).network
+    network_config = NetworkConfig(n_embd=16)
+    options = CMATOptions(consensus_iterations="2n", consensus_source=source)
+    full = CMAT.build(network_config, spec, options=options).network
     obs = jax.random.normal(jax.random.PRNGKey(1), (2, 2, 5))
     mask = np.ones((2, 2, 3), bool)
     params = jax.jit(full.init)(jax.random.PRNGKey(0), obs, mask)
@@ -195,7 +205,8 @@ def test_stopping_the_refinement_early_equals_the_first_iterations(source: str) 
     vectors = captured["intermediates"]["decoder"]["__call__"][0]
     assert vectors.shape == (2, 5, 16)
     for k in (0, 1, 4):
-        short = CMAT.build(dataclasses.replace(network_config, consensus_iterations=k), spec)
+        short = CMAT.build(network_config, spec,
+                           options=dataclasses.replace(options, consensus_iterations=k))
         output = jax.jit(short.network.apply)(with_iterations(params, k), obs, mask)
         expected = vectors[:, k] if source == "last" else Compressor(16, 4, 16).apply(
             {"params": params["params"]["actor_compressor"]}, vectors[:, : k + 1]
@@ -224,6 +235,6 @@ def test_eval_iterations_is_cmat_only(
 ) -> None:
     source = Path(shutil.copytree(base, tmp_path / "mat"))
     config = yaml.safe_load((source / "config.yaml").read_text())
-    (source / "config.yaml").write_text(yaml.safe_dump(as_algorithm(config, "mat")))
+    (source / "config.yaml").write_text(as_algorithm(config, "mat"))
     assert main(["eval", "--run", str(source), "--iterations", "1"]) == 2
     assert "--iterations applies to cmat runs only" in one_error_line(capsys.readouterr().err)

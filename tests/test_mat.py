@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 from collections.abc import Callable
@@ -16,6 +17,7 @@ from cmat.algorithms.base import Batch
 from cmat.algorithms.cmat.algorithm import CMAT
 from cmat.algorithms.mat.algorithm import MAT
 from cmat.algorithms.pmat.algorithm import PMAT, order_log_prob, sample_order
+from cmat.algorithms.pmat.options import PMATOptions
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution
@@ -160,14 +162,15 @@ def test_pmat_scores_actions_along_the_sampled_order(pmat_team: Team) -> None:
 
 
 def test_pmat_index_order_loss_decodes_as_the_reference_training_pass(pmat_team: Team) -> None:
-    """`ppo.order_in_loss=index` (PMAT's reference default) decodes the stored actions in index
+    """`pmat.order_in_loss=index` (PMAT's reference default) decodes the stored actions in index
     order, as the reference's `forward` does: at the collecting parameters its log-ratios are
     index-order teacher forcing against the log-probs acting had along the sampled order."""
     algorithm, params, batch = pmat_team
     identity = jnp.broadcast_to(jnp.arange(AGENTS), batch.extras.order.shape)
     log_ratio = teacher_forced_log_probs(pmat_team, identity) - batch.log_probs
     expected_kl = float(jnp.mean(jnp.expm1(log_ratio) - log_ratio))
-    _, metrics = jitted(algorithm.loss, (2,))(params, batch, PPOConfig(order_in_loss="index"))
+    index_order = dataclasses.replace(algorithm, options=PMATOptions(order_in_loss="index"))
+    _, metrics = jitted(index_order.loss, (2,))(params, batch, PPOConfig())
     assert expected_kl > 1e-3
     assert float(metrics["approx_kl"]) == pytest.approx(expected_kl, rel=1e-4)
     assert float(metrics["order_approx_kl"]) == pytest.approx(0.0, abs=1e-7)

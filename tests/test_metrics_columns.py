@@ -39,7 +39,7 @@ def test_every_emitted_metric_reaches_metrics_csv(
 
     monkeypatch.setattr(RunDir, "append_metrics", recording)
     out = tmp_path / "run"
-    own = ["network.consensus_policy=categorical"] if algo == "cmat" else []
+    own = ["cmat.consensus_policy=categorical"] if algo == "cmat" else []
     assert main(["train", "--env", "matrix:fig1", "--algo", algo, "--steps", "100",
                  "--out", str(out), "--set", "num_envs=2", "rollout_length=25",
                  "log_interval=1", "ppo.epochs=1", "network.n_embd=8", "eval_episodes=2",

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 from test_cmat_options import batch_for
 
-from cmat.algorithms import build_algorithm
+from cmat.algorithms import algorithm_options, build_algorithm
+from cmat.algorithms.cmat.options import CMATOptions
 from cmat.algorithms.sgd import minibatch_gradient
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -27,6 +28,13 @@ CONTINUOUS = EnvSpec("test", 4, 5, 3, False, 10, False)
 pytestmark = pytest.mark.quick_compiles
 
 
+def own(algo: str, **fields: object):
+    """`algo`'s section with those of `fields` it has (m = 2 for CMAT's tests)."""
+    cls = algorithm_options(algo)
+    names = set(cls.__dataclass_fields__)
+    return cls(**{k: v for k, v in {"consensus_iterations": 2, **fields}.items() if k in names})
+
+
 @pytest.mark.parametrize("algo, spec, network", [
     ("cmat", CONTINUOUS, {"consensus_policy": "categorical"}),
     ("pmat", CONTINUOUS, {}),
@@ -35,8 +43,8 @@ pytestmark = pytest.mark.quick_compiles
     pytest.param("triple_bert", CONTINUOUS, {}, marks=pytest.mark.slow),
 ])
 def test_chunked_minibatch_gives_the_same_loss_and_gradient(algo, spec, network) -> None:
-    config = NetworkConfig(n_embd=8, init_gain=1.0, consensus_iterations=2, **network)
-    algorithm = build_algorithm(algo, config, spec)
+    config = NetworkConfig(n_embd=8, init_gain=1.0)
+    algorithm = build_algorithm(algo, config, spec, options=own(algo, **network))
     params, batch = batch_for(algorithm)
 
     def loss_and_grad(chunks: int):
@@ -60,7 +68,8 @@ def test_chunked_minibatch_gives_the_same_loss_and_gradient(algo, spec, network)
 @pytest.mark.optimised  # XLA's buffer assignment after its optimisations is what is measured
 @pytest.mark.parametrize("active_masks", [True, False], ids=["recomputed", "accumulated"])
 def test_chunks_shrink_the_compiled_gradients_working_memory(active_masks) -> None:
-    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=32, consensus_iterations=1), DISCRETE)
+    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=32), DISCRETE,
+                                options=CMATOptions(consensus_iterations=1))
     params, batch = batch_for(algorithm)
     batch = jax.tree.map(lambda x: np.concatenate([x] * 16), batch)
 
@@ -100,10 +109,10 @@ def gradient_with(algorithm, params, batch, ppo: PPOConfig):
 def test_accumulated_slices_give_the_minibatchs_loss_and_gradient(
     algo, spec, network, options
 ) -> None:
-    algorithm = build_algorithm(algo, NetworkConfig(n_embd=8, init_gain=1.0,
-                                                    consensus_iterations=2, **network), spec)
+    algorithm = build_algorithm(algo, NetworkConfig(n_embd=8, init_gain=1.0), spec,
+                                options=own(algo, **network, **options))
     params, batch = batch_for(algorithm)
-    ppo = PPOConfig(active_masks=False, **options)
+    ppo = PPOConfig(active_masks=False)
     (whole, whole_metrics), whole_grad = gradient_with(algorithm, params, batch, ppo)
     (sliced, sliced_metrics), sliced_grad = gradient_with(
         algorithm, params, batch, dataclasses.replace(ppo, minibatch_chunks=4))
@@ -125,7 +134,8 @@ def test_accumulated_slices_give_the_minibatchs_loss_and_gradient(
 def test_slices_are_accumulated_only_where_the_loss_is_a_plain_mean(active_masks, calls) -> None:
     """Without active masks the loss sees each 8-sample slice whole (traced once, in the
     scan); with them, the whole 32-sample minibatch and the chunk count, to recompute."""
-    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=8, consensus_iterations=1), DISCRETE)
+    algorithm = build_algorithm("cmat", NetworkConfig(n_embd=8), DISCRETE,
+                                options=CMATOptions(consensus_iterations=1))
     params, batch = batch_for(algorithm)
     seen = []
 

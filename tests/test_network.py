@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -12,6 +10,7 @@ import pytest
 
 from cmat.algorithms.cmat.algorithm import CMAT
 from cmat.algorithms.cmat.network import SCAN_ITERATIONS, ConsensusDecoder
+from cmat.algorithms.cmat.options import CMATOptions
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import SharedInputDense, action_distribution
@@ -22,9 +21,10 @@ N_AGENTS, OBS_DIM, N_ACTIONS = 5, 7, 6
 
 pytestmark = pytest.mark.quick_compiles
 
-def build(discrete: bool, **network: object) -> tuple[CMAT, object, jax.Array, jax.Array]:
+def build(discrete: bool, **options: object) -> tuple[CMAT, object, jax.Array, jax.Array]:
     spec = EnvSpec("test", N_AGENTS, OBS_DIM, N_ACTIONS, discrete, 10, False)
-    algorithm = CMAT.build(dataclasses.replace(NetworkConfig(n_embd=32, n_head=2), **network), spec)
+    algorithm = CMAT.build(NetworkConfig(n_embd=32, n_head=2), spec,
+                           options=CMATOptions(**options))
     obs = jax.random.normal(jax.random.PRNGKey(1), (3, N_AGENTS, OBS_DIM))
     mask = jax.random.bernoulli(jax.random.PRNGKey(2), 0.6, (3, N_AGENTS, N_ACTIONS))
     mask = mask.at[..., 0].set(True)

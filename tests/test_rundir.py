@@ -16,8 +16,10 @@ import pytest
 from matplotlib.image import imread
 
 from cmat import plots
+from cmat.algorithms.cmat.options import CMATOptions
 from cmat.cli import main
-from cmat.config import TrainConfig, field_names
+from cmat.config import TrainConfig
+from cmat.configfile import field_names
 from cmat.errors import CmatError
 from cmat.plots import plot_runs, run_names
 from cmat.rundir import COLUMNS, RunDir, Session
@@ -45,11 +47,11 @@ def test_create_writes_config_that_reads_back(tmp_path: Path) -> None:
 
 
 @pytest.mark.unit
-@pytest.mark.parametrize("dropped", ["ppo.order_in_loss", "network.n_block", "eval_episodes"])
+@pytest.mark.parametrize("dropped", ["cmat.consensus_source", "network.n_block", "eval_episodes"])
 def test_a_field_the_runs_config_lacks_is_marked_as_its_default_on_resume(
     tmp_path: Path, dropped: str
 ) -> None:
-    config = TrainConfig(env="smax:3m", total_steps=1000)
+    config = TrainConfig(env="smax:3m", total_steps=1000, options=CMATOptions())
     sources = {name: "default" for name in field_names()} | {"env": "command line"}
     run = RunDir.create(tmp_path / "run", config, sources)
     section, _, key = dropped.rpartition(".")

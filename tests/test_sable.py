@@ -17,6 +17,7 @@ from test_training import greedy_return_gain
 from cmat.algorithms.base import Batch
 from cmat.algorithms.sable.algorithm import FFSable, permute_agents
 from cmat.algorithms.sable.network import SableNetwork
+from cmat.algorithms.sable.options import FFSableOptions
 from cmat.cli import main
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -244,9 +245,10 @@ def test_sable_ppo_update_moves_the_parameters_and_keeps_swiglu_at_zero() -> Non
     """Four epochs of shuffled-agent PPO change the network; the reference's zero-initialised
     SwiGLU gets zero gradients and stays the zero map."""
     spec = EnvSpec("test", AGENTS, OBS_DIM, ACTIONS, True, 10, False)
-    ppo = PPOConfig(epochs=4, num_minibatches=2, per_agent_gae=True, value_norm=False,
+    ppo = PPOConfig(epochs=4, num_minibatches=2, value_norm=False,
                     huber_loss=False, clip_eps=0.2, normalize_advantages=False)
-    algorithm = FFSable.build(NetworkConfig(n_embd=8), spec, ppo)
+    algorithm = FFSable.build(NetworkConfig(n_embd=8), spec, ppo,
+                              FFSableOptions(per_agent_gae=True))
     samples = 32
     obs = jax.random.normal(jax.random.PRNGKey(14), (samples, AGENTS, OBS_DIM))
     mask = random_masks(15, samples, AGENTS)
@@ -459,7 +461,7 @@ def test_recurrent_sable_trains_and_resumes_through_the_cli(
     """With the whole rollout in one pass, and in chunks that do or do not divide it (the
     value pass covers one step more than the rollout)."""
     out = tmp_path / "run"
-    chunked = [] if chunk is None else [f"network.retention_chunk={chunk}"]
+    chunked = [] if chunk is None else [f"sable.retention_chunk={chunk}"]
     args = ["train", "--out", str(out), "--steps", "96", "--set", *RECURRENT[1:], *chunked,
             "log_interval=1", "--algo", "sable"]
     assert main(args) == 0

@@ -14,6 +14,7 @@ import pytest
 from cmat.algorithms.base import Batch
 from cmat.algorithms.cmat.algorithm import CMAT
 from cmat.algorithms.cmat.blocks import FROZEN, TRAIN, finetune_labels
+from cmat.algorithms.cmat.options import CMATOptions
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
@@ -26,9 +27,10 @@ POLICIES = ("categorical", "gaussian")
 
 
 def build(policy: str, agents: int = AGENTS, actions: int = ACTIONS, **network: object) -> CMAT:
-    config = NetworkConfig(n_embd=16, n_head=2, consensus_policy=policy, consensus_codes=4)
+    config = NetworkConfig(n_embd=16, n_head=2)
     spec = EnvSpec("test", agents, OBS_DIM, actions, True, 10, False)
-    return CMAT.build(dataclasses.replace(config, **network), spec)
+    options = CMATOptions(consensus_policy=policy, consensus_codes=4)
+    return CMAT.build(dataclasses.replace(config, **network), spec, options=options)
 
 
 def acted(policy: str) -> tuple[CMAT, object, Batch]:
@@ -115,7 +117,7 @@ def joint_distribution(
 
     if not algorithm.stochastic:
         return given(None)
-    return jax.vmap(given)(jnp.arange(algorithm.network.config.consensus_codes)).sum(axis=0)
+    return jax.vmap(given)(jnp.arange(algorithm.network.options.consensus_codes)).sum(axis=0)
 
 
 @pytest.mark.unit
@@ -185,7 +187,7 @@ def test_permuting_agents_permutes_policies_given_the_latent_and_keeps_the_conse
 @pytest.mark.slow
 def test_categorical_consensus_reaches_an_optimum_of_the_penalty_game() -> None:
     config = load_config(overrides=[
-        "env=matrix:penalty", "network.consensus_policy=categorical", *PENALTY_RUN,
+        "env=matrix:penalty", "cmat.consensus_policy=categorical", *PENALTY_RUN,
     ])
     at_optimum, joint = train_and_count_optimum(config)
     assert at_optimum >= 8, joint.tolist()

@@ -11,7 +11,14 @@ import yaml
 
 from cmat.algorithms import reference_defaults
 from cmat.cli import main
-from cmat.config import field_names, from_yaml, layer_fields, read_sources, to_yaml
+from cmat.configfile import (
+    field_names,
+    from_yaml,
+    layer_fields,
+    read_sources,
+    to_mapping,
+    to_yaml,
+)
 from cmat.envs import probe_env
 from cmat.envs.host import grf
 from cmat.envs.suites import SUITES
@@ -28,13 +35,11 @@ IDS = {
 
 
 def value(config: object, dotted: str) -> object:
-    for part in dotted.split("."):
-        config = getattr(config, part)
-    return config
+    return value_at(to_mapping(config), dotted)
 
 
-def flat(settings: dict) -> dict[str, object]:
-    return {name: value_at(settings, name) for name in layer_fields(settings)}
+def flat(settings: dict, algo: str = "cmat") -> dict[str, object]:
+    return {name: value_at(settings, name) for name in layer_fields(settings, algo)}
 
 
 def value_at(settings: dict, dotted: str) -> object:
@@ -81,7 +86,7 @@ def test_every_later_layer_beats_the_suite(suite: str, tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("overrides", [
     [], ["env=mamujoco:Hopper-3x1", "algo=happo"], ["env=smax:3m", "preset=paper"],
-    ["env=matrix:fig1", "env_kwargs.payoff=[[1,2],[3,4]]", "network.consensus_iterations=n/2"],
+    ["env=matrix:fig1", "env_kwargs.payoff=[[1,2],[3,4]]", "cmat.consensus_iterations=n/2"],
     ["env=grf:academy_3_vs_1_with_keeper", "algo=mat", "ppo.target_kl=0.02", "seed=7"],
 ])
 @pytest.mark.unit

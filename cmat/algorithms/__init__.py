@@ -16,13 +16,15 @@ reads the entries only, so resolving and checking a config never imports JAX.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import importlib
 import pkgutil
 from typing import TYPE_CHECKING, Any
 
 from cmat.algorithms.entry import AlgorithmEntry
-from cmat.config import PPOConfig
+from cmat.algorithms.options import options_of
+from cmat.config import AlgorithmOptions, PPOConfig, validate
 from cmat.errors import CmatError
 from cmat.plugins import with_plugins
 
@@ -33,7 +35,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "ENTRY_POINTS", "OPTION_CAPABILITIES", "AlgorithmEntry", "algorithm_class", "algorithm_entry",
-    "algorithm_label", "algorithm_names", "algorithm_presets", "build_algorithm",
+    "algorithm_label", "algorithm_names", "algorithm_options", "algorithm_presets",
+    "build_algorithm",
     "builtin_entries", "check_config", "entries", "finetune_stage_error", "reference_defaults",
     "task_reference_defaults",
 ]
@@ -91,16 +94,17 @@ def algorithm_label(algo: str) -> str:
     return algorithm_entry(algo).label
 
 
+def algorithm_options(name: str) -> type[AlgorithmOptions]:
+    """The class of the named algorithm's config section (its entry's `options`); CmatError
+    for an unknown name."""
+    return algorithm_entry(name).options
+
+
 OPTION_CAPABILITIES = {
-    "network.consensus_policy": ("consensus", "deterministic"),
-    "ppo.joint_clip": ("joint_ratio", "joint"),
-    "ppo.entropy_reduction": ("joint_ratio", "mean"),
-    "ppo.per_agent_gae": ("per_agent_values", False),
     "ppo.minibatch_chunks": ("minibatch_chunks", 1),
-    "ppo.order_in_loss": ("sampled_order", "sampled"),
 }
-"""Options only some algorithms have: field -> (the capability it needs, the value every
-algorithm accepts)."""
+"""Shared options only some algorithms support: field -> (the capability it needs, the value
+every algorithm accepts). An option only one algorithm has is in its own section instead."""
 
 
 @functools.cache
@@ -129,11 +133,18 @@ def algorithm_presets(name: str) -> dict[str, dict[str, Any]]:
 
 
 def build_algorithm(
-    name: str, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+    name: str, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None,
+    options: AlgorithmOptions | None = None,
 ) -> Algorithm:
-    """The named algorithm's `build(config, spec, ppo)`."""
-    algorithm: Algorithm = algorithm_class(name).build(config, spec, ppo or PPOConfig())
+    """The named algorithm's `build(config, spec, ppo, options)` (None: the defaults)."""
+    algorithm: Algorithm = algorithm_class(name).build(
+        config, spec, ppo or PPOConfig(), own_options(name, options))
     return algorithm
+
+
+def own_options(name: str, options: AlgorithmOptions | None) -> AlgorithmOptions:
+    """`options` as the named algorithm's section (`options_of`)."""
+    return options_of(options, algorithm_options(name))
 
 
 def finetune_stage_error(algo: str, stage: str) -> str | None:
@@ -149,10 +160,14 @@ def finetune_stage_error(algo: str, stage: str) -> str | None:
 
 def check_config(config: TrainConfig) -> TrainConfig:
     """Reject a config whose algorithm is unknown, cannot fine-tune in `config.finetune`, or
-    lacks the capability one of its options needs (`OPTION_CAPABILITIES`); returns it.
+    lacks the capability one of its options needs (`OPTION_CAPABILITIES`); returns it, its
+    section the algorithm's own (`own_options`).
 
     Raises CmatError naming the field and the algorithms that accept it."""
     entry = algorithm_entry(config.algo)
+    options = own_options(config.algo, config.options)
+    if options is not config.options:
+        config = validate(dataclasses.replace(config, options=options))
     if config.finetune is not None and (error := finetune_stage_error(config.algo,
                                                                       config.finetune)):
         raise CmatError(f"invalid config: {error}")

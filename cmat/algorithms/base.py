@@ -14,7 +14,7 @@ from typing import Any, NamedTuple, Protocol, cast, runtime_checkable
 import jax
 import optax
 
-from cmat.config import NetworkConfig, PPOConfig
+from cmat.config import AlgorithmOptions, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 
 Params = Any
@@ -106,10 +106,12 @@ class Algorithm(Protocol):
 
     @classmethod
     def build(
-        cls, network: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+        cls, network: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None,
+        options: AlgorithmOptions | None = None,
     ) -> Algorithm:
-        """The algorithm for an environment of `spec` with the sizes of `network` (and the PPO
-        settings that shape its networks, e.g. `ppo.minibatch_chunks`)."""
+        """The algorithm for an environment of `spec` with the sizes of `network`, the PPO
+        settings that shape its networks (e.g. `ppo.minibatch_chunks`) and its own section
+        `options` (its entry's `options` class; None: its defaults)."""
         ...
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:

@@ -2,14 +2,16 @@
 
 Each algorithm package of cmat (`cmat/algorithms/<name>/__init__.py`) names its entries in
 `ENTRIES`; an installed package names one under the `cmat.algorithms` entry point
-(docs/algorithms.md). This module imports nothing but the standard library, so that reading an
-entry never imports JAX.
+(docs/algorithms.md). This module imports nothing but the standard library and `cmat.config`, so
+that reading an entry never imports JAX.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Any
+
+from cmat.config import AlgorithmOptions
 
 
 @dataclass(frozen=True)
@@ -25,12 +27,15 @@ class AlgorithmEntry:
     """`module:Class` of its `cmat.algorithms.base.Algorithm` subclass (network and loss),
     imported on first use (`cmat.algorithms.algorithm_class`)."""
     network_fields: tuple[str, ...]
-    """The `NetworkConfig` fields its networks read; the others leave it unchanged
+    """The shared `NetworkConfig` fields its networks read; the others leave it unchanged
     (`cmat config --algo NAME` marks them)."""
+    options: type[AlgorithmOptions] = AlgorithmOptions
+    """Its own section of the run config (a frozen dataclass importing no JAX, in the
+    package's `options.py`): the network and loss options no other algorithm reads, with their
+    defaults and docstrings, under the algorithm's name in config files and `--set`."""
     capabilities: frozenset[str] = frozenset()
-    """What the algorithm has of `cmat.algorithms.OPTION_CAPABILITIES`: 'consensus',
-    'joint_ratio', 'per_agent_values', 'minibatch_chunks', 'sampled_order'; the options that
-    need one are rejected without it. 'minibatch_chunks' promises a loss whose reductions over
+    """What the algorithm has of `cmat.algorithms.OPTION_CAPABILITIES` (shared options that
+    not every algorithm supports): 'minibatch_chunks' promises a loss whose reductions over
     the minibatch are means with parameter-independent denominators, so that without active
     masks equal slices' losses average to the minibatch's
     (`cmat.algorithms.base.loss_is_sample_mean`), and whose network pass with

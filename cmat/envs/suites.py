@@ -61,7 +61,7 @@ averages, are 32 envs here; agent ids on (`add_agent_id: True`)."""
 
 DISPATCH_SETTINGS: dict[str, Any] = {
     "rollout_length": 30, "num_envs": 4, "total_steps": 200_000, "eval_episodes": 8,
-    "eval_actions": "sample", "network": {"consensus_iterations": 5},
+    "eval_actions": "sample", "cmat": {"consensus_iterations": 5},
     "ppo": {"lr": 5e-4, "adam_eps": 1e-5, "epochs": 5, "num_minibatches": 1, "clip_eps": 0.2,
             "ent_coef": 0.01, "max_grad_norm": 10.0},
 }
@@ -95,7 +95,9 @@ class Suite:
     builder: str
     """`module:function` of its `Builder`; imported when an environment is built."""
     settings: dict[str, Any]
-    """Config values (nested like `TrainConfig`) this suite's runs start from."""
+    """Config values (nested as in a config file) this suite's runs start from; a section
+    named by an algorithm (`cmat: {consensus_iterations: 5}`) applies to that algorithm's runs
+    only."""
     source: str
     """Where the settings come from (`cmat config` prints it under the fields, whose sources
     read `suite PREFIX`)."""

@@ -25,7 +25,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from cmat.config import TrainConfig, resolve_iterations
+from cmat.algorithms.cmat.options import CMATOptions
+from cmat.config import TrainConfig
 from cmat.envs import probe_env
 from cmat.errors import CmatError
 from cmat.experiments.spec import EnvEntry, ExperimentSpec, Variant
@@ -73,9 +74,10 @@ class Run:
     @property
     def iterations(self) -> int | None:
         """The resolved m of a CMAT run (None for other algorithms or an unknown n)."""
-        if self.algo != "cmat" or self.config is None or self.num_agents is None:
+        if (self.config is None or self.num_agents is None
+                or not isinstance(self.config.options, CMATOptions)):
             return None
-        return resolve_iterations(self.config.network.consensus_iterations, self.num_agents)
+        return self.config.options.iterations(self.num_agents)
 
 
 @dataclass

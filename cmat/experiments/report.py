@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from cmat.algorithms.cmat.options import CMATOptions
 from cmat.experiments.baselines import baseline_lines
 from cmat.experiments.claims import judge_claims
 from cmat.experiments.figures import draw
@@ -93,8 +94,7 @@ def summarise(
                 "steps": (line.runs[0].config.budget_steps
                           if line.runs and line.runs[0].config else None),
                 "iterations": line.iterations,
-                "consensus_source": (line.runs[0].config.network.consensus_source
-                                     if line.algo == "cmat" and line.runs[0].config else None),
+                "consensus_source": consensus_source(line),
                 "metrics": last_metrics(line),
             }
         entry["published"] = matching_references(references, env.id, metric)
@@ -117,6 +117,13 @@ def summarise(
         if plan.spec.score_window > 0:
             summary["claims_from_finals"] = judge_claims(summary, plan.spec, scores="finals")
     return summary
+
+
+def consensus_source(line: Line) -> str | None:
+    """The consensus source of a CMAT line (`cmat.consensus_source`), None for other lines."""
+    config = line.runs[0].config if line.runs else None
+    return config.options.consensus_source if config and isinstance(
+        config.options, CMATOptions) else None
 
 
 def last_metrics(line: Line) -> dict[str, float]:

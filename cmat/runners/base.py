@@ -9,6 +9,7 @@ evaluation semantics (`cmat.runners.evaluation`).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Protocol
 
 import flax.serialization
@@ -188,10 +189,12 @@ def restore_run(
                    and recorded[name] != expected[name]]
         if changed:
             name = changed[0]
+            section = ("network" if name in dataclasses.asdict(trainer.config.network)
+                       else trainer.config.algo)
             raise CmatError(
-                f"{run_dir.config_path} does not match its checkpoint: network.{name} is "
+                f"{run_dir.config_path} does not match its checkpoint: {section}.{name} is "
                 f"{expected[name]!r} there, the checkpoint's parameters belong to "
-                f"network.{name} = {recorded[name]!r}; a run's network cannot change")
+                f"{section}.{name} = {recorded[name]!r}; a run's network cannot change")
     counted = trainer.env_steps(state)
     if counted != env_steps:
         config = trainer.config

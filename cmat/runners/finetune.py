@@ -24,7 +24,8 @@ if TYPE_CHECKING:
     from cmat.runners.base import Trainer, TrainerState
 
 FIXED_FIELDS = ("env", "env_kwargs", "algo", "seeds", "seed", "network")
-"""What a fine-tuning run cannot change: the checkpoint holds parameters for exactly these."""
+"""What a fine-tuning run cannot change: the checkpoint holds parameters for exactly these, and
+for the algorithm's `network_options`."""
 
 
 def finetune_config(
@@ -42,10 +43,11 @@ def finetune_config(
         raise CmatError(f"{source_dir}: {error}")
     for override in overrides:
         key = override.split("=", 1)[0].strip()
-        field = key.split(".", 1)[0]
-        if field in FIXED_FIELDS:
-            raise CmatError(f"fine-tuning cannot change {field} of the source run (its "
-                            f"checkpoint holds the parameters for it)")
+        field, _, inner = key.partition(".")
+        if field in FIXED_FIELDS or (field == source.algo
+                                     and inner in source.options.network_options):
+            raise CmatError(f"fine-tuning cannot change {field if field in FIXED_FIELDS else key} "
+                            f"of the source run (its checkpoint holds the parameters for it)")
         if field in ("finetune", "finetune_from"):
             raise CmatError(f"--set {key}: a fine-tuning stage is named by --mode and --from")
     config, sources = resolve_config(None, overrides, base=source, base_sources=source_sources)

@@ -55,7 +55,7 @@ class LearnerSetup:
 
 def build_learner(config: TrainConfig, spec: EnvSpec) -> LearnerSetup:
     """The algorithm of `config` for environments of `spec`, and its optimizer."""
-    algorithm = build_algorithm(config.algo, config.network, spec, config.ppo)
+    algorithm = build_algorithm(config.algo, config.network, spec, config.ppo, config.options)
     return LearnerSetup(config, spec, algorithm, build_optimizer(config, algorithm))
 
 

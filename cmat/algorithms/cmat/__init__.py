@@ -8,9 +8,9 @@ module is its registry entry and settings, read without importing JAX.
 
 from __future__ import annotations
 
-from dataclasses import fields
 from typing import Any
 
+from cmat.algorithms.cmat.options import CMATOptions
 from cmat.algorithms.entry import AlgorithmEntry
 from cmat.config import NetworkConfig
 
@@ -20,12 +20,12 @@ PAPER_SETTINGS: dict[str, Any] = {
         "clip_eps": 0.05, "value_coef": 1.0, "gamma": 0.99, "gae_lambda": 0.95,
         "target_tau": 0.1, "value_norm": True, "huber_loss": True, "huber_delta": 10.0,
         "clipped_value_loss": True, "normalize_advantages": True, "active_masks": False,
-        "joint_clip": "joint", "entropy_reduction": "mean", "target_kl": None,
+        "target_kl": None,
     },
-    "network": {
-        "n_embd": 64, "n_head": 1, "n_block": 1, "consensus_iterations": "n",
-        "consensus_source": "mixture", "consensus_policy": "deterministic", "init_gain": 0.01,
-        "log_std_init": 1.0,
+    "network": {"n_embd": 64, "n_head": 1, "n_block": 1, "init_gain": 0.01, "log_std_init": 1.0},
+    "cmat": {
+        "consensus_iterations": "n", "consensus_source": "mixture",
+        "consensus_policy": "deterministic", "joint_clip": "joint", "entropy_reduction": "mean",
     },
 }
 """The paper's settings (Experiments supplement): "the model configurations follow those
@@ -37,7 +37,7 @@ ratio clipped to [1 − ε, 1 + ε] (eq. cmat), entropy averaged over agents, an
 (τ not given in the paper: 0.1, docs/algorithms.md)."""
 
 
-TUNED_SETTINGS: dict[str, Any] = {"ppo": {"joint_clip": "per_agent", "target_tau": 1.0}}
+TUNED_SETTINGS: dict[str, Any] = {"ppo": {"target_tau": 1.0}, "cmat": {"joint_clip": "per_agent"}}
 """CMAT's default since the learning-speed study (docs/results/index.md), where it
 learned faster per env step than the paper's settings, MAT and MAPPO on SMAX 6h_vs_8z, 5m_vs_6m
 and 3s5z_vs_3s6z: the per-agent clip of the joint ratio (`ppo.joint_clip=per_agent`, which
@@ -46,11 +46,8 @@ and no lag in the target critic (τ = 1: V_φ- is the critic as the last update 
 PPO). Joint ratio, consensus, team critic and order independence are unchanged. `--preset paper`
 restores the paper's clip and τ = 0.1 with the rest of its settings."""
 
-NETWORK_FIELDS = tuple(
-    f.name for f in fields(NetworkConfig)
-    if f.name not in ("mlp_layers", "retention_decay", "retention_chunk")
-)
-"""Every `NetworkConfig` field but the MLP baselines' depth and Sable's retention options."""
+NETWORK_FIELDS = tuple(NetworkConfig.__dataclass_fields__)
+"""Every shared `NetworkConfig` field."""
 
 FINETUNE_STAGES = ("consensus", "action")
 """Algorithm 1, B: consensus enhancement, then action-policy enhancement; the blocks each one
@@ -69,7 +66,8 @@ ENTRIES = {
         label="CMAT",
         cls="cmat.algorithms.cmat.algorithm:CMAT",
         network_fields=NETWORK_FIELDS,
-        capabilities=frozenset({"consensus", "joint_ratio", "minibatch_chunks"}),
+        options=CMATOptions,
+        capabilities=frozenset({"minibatch_chunks"}),
         finetune_stages=FINETUNE_STAGES,
         reference_defaults=REFERENCE_DEFAULTS,
         presets=PRESETS,

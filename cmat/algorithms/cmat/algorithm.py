@@ -4,11 +4,11 @@ The joint ratio is Π_i π_i(a_i | O, μ_θ(O)) / Π_i π_i,old(a_i | O, μ_θ-(
 the deterministic consensus has probability 1, so only the per-agent factors enter, and the
 gradient reaches μ_θ through c. The critic is one team value V(O) from e0 (paper eq. cmat).
 
-With a stochastic consensus (`network.consensus_policy` categorical or gaussian) the latent z
+With a stochastic consensus (`cmat.consensus_policy` categorical or gaussian) the latent z
 is sampled at acting time and stored with the transition, and the joint log-probability is
 log π(A, z | O) = log π_c(z | O) + Σ_i log π_i(a_i | O, z) (eq. joint-stochastic), so its
 ratio is the product of the consensus ratio and the per-agent ratios. π_c's entropy gets its
-own coefficient, `ppo.consensus_ent_coef`.
+own coefficient, `cmat.consensus_ent_coef`.
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ import jax.numpy as jnp
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked
 from cmat.algorithms.cmat.blocks import finetune_labels
 from cmat.algorithms.cmat.network import CMATNetwork, PolicyOutput
+from cmat.algorithms.cmat.options import CMATOptions
+from cmat.algorithms.options import options_of
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     joint_clip_range,
@@ -33,7 +35,7 @@ from cmat.algorithms.ppo import (
     value_loss,
 )
 from cmat.algorithms.sgd import PPOAlgorithm
-from cmat.config import NetworkConfig, PPOConfig
+from cmat.config import AlgorithmOptions, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution, greedy_action
 
@@ -56,9 +58,11 @@ class CMAT(PPOAlgorithm):
 
     @classmethod
     def build(
-        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None,
+        options: AlgorithmOptions | None = None,
     ) -> CMAT:
-        return cls(CMATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))
+        return cls(CMATNetwork(config, options_of(options, CMATOptions), spec.num_agents,
+                               spec.action_dim, spec.discrete))
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         return self.network.init(key, obs, action_mask)
@@ -84,7 +88,7 @@ class CMAT(PPOAlgorithm):
 
     @property
     def stochastic(self) -> bool:
-        return self.network.config.consensus_policy != "deterministic"
+        return self.network.options.consensus_policy != "deterministic"
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         output = cast(PolicyOutput, self.network.apply(params, obs, action_mask))
@@ -130,13 +134,14 @@ class CMAT(PPOAlgorithm):
         `ppo.active_masks`), team value loss; with a stochastic consensus, π_c's entropy gets its
         own bonus.
 
-        Named departures from the paper (PPOConfig): `joint_clip=per_agent` clips R to
+        Named departures from the paper (`JointRatioOptions`): `joint_clip=per_agent` clips R to
         [(1−ε)^k, (1+ε)^k] for k active agents instead of [1−ε, 1+ε] (eq. cmat);
         `entropy_reduction=sum` weights the entropy of the joint policy Σ_i H(π_i) instead of
         its mean over agents (n times the mean without active masks)."""
+        own = self.network.options
         log_ratio, output, distribution = self.log_ratio(params, batch, ppo.minibatch_chunks)
         clip_range = None
-        if ppo.joint_clip == "per_agent":
+        if own.joint_clip == "per_agent":
             alive = batch.alive if batch.alive is not None else jnp.ones(batch.log_probs.shape)
             clip_range = joint_clip_range(ppo.clip_eps, jnp.sum(alive, axis=-1))
         policy_loss, diagnostics = clipped_surrogate_loss(
@@ -144,7 +149,7 @@ class CMAT(PPOAlgorithm):
         )
         entropies = distribution.entropy()
         entropy = masked_mean(entropies, active_mask(batch, ppo))
-        if ppo.entropy_reduction == "sum":
+        if own.entropy_reduction == "sum":
             entropy = entropy * entropies.shape[-1]
         critic_loss = value_loss(output.value, batch.values, batch.targets, ppo)
         total, terms = total_loss(policy_loss, entropy, critic_loss, ppo)
@@ -158,6 +163,6 @@ class CMAT(PPOAlgorithm):
         }
         if self.stochastic:
             consensus_entropy = jnp.mean(output.latent_entropy)
-            total = total - ppo.consensus_ent_coef * consensus_entropy
+            total = total - self.network.options.consensus_ent_coef * consensus_entropy
             metrics["consensus_entropy"] = consensus_entropy
         return total, metrics

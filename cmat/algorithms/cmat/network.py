@@ -24,7 +24,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from cmat.config import NetworkConfig, resolve_iterations
+from cmat.algorithms.cmat.options import CMATOptions
+from cmat.config import NetworkConfig
 from cmat.networks.heads import ActionHead, ValueHead, mask_unavailable
 from cmat.networks.layers import (
     SMALL_GAIN,
@@ -170,6 +171,7 @@ class CMATNetwork(nn.Module):
     """CMAT actor-critic over one team: obs [..., n, obs_dim] -> PolicyOutput."""
 
     config: NetworkConfig
+    options: CMATOptions
     num_agents: int
     action_dim: int
     discrete: bool
@@ -177,27 +179,27 @@ class CMATNetwork(nn.Module):
     @property
     def iterations(self) -> int:
         """m (paper eq. decoder); defaults to the number of agents ('n', 'n/2', '2n' allowed)."""
-        return resolve_iterations(self.config.consensus_iterations, self.num_agents)
+        return self.options.iterations(self.num_agents)
 
     def setup(self) -> None:
-        cfg = self.config
+        cfg, own = self.config, self.options
         gain = cfg.init_gain
         self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain,
-                                          cfg.attention_block)
-        self.critic_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd, gain)
+                                          own.attention_block)
+        self.critic_compressor = Compressor(cfg.n_embd, own.compressor_heads, cfg.n_embd, gain)
         self.critic_mlp = ValueHead(cfg.n_embd, gain)
         self.decoder = ConsensusDecoder(
             cfg.n_embd, cfg.n_head, cfg.n_block, self.iterations, gain
         )
-        self.actor_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd, gain)
-        stochastic = cfg.consensus_policy != "deterministic"
-        actor_gain = cfg.latent_head_gain if stochastic else gain
+        self.actor_compressor = Compressor(cfg.n_embd, own.compressor_heads, cfg.n_embd, gain)
+        stochastic = own.consensus_policy != "deterministic"
+        actor_gain = own.latent_head_gain if stochastic else gain
         self.actor_mlp = ActionHead(
             cfg.n_embd, self.action_dim, self.discrete, actor_gain, cfg.log_std_init
         )
         if stochastic:
             self.latent_consensus = LatentConsensus(
-                cfg.consensus_policy, cfg.consensus_codes, cfg.n_embd, cfg.latent_head_gain
+                own.consensus_policy, own.consensus_codes, cfg.n_embd, own.latent_head_gain
             )
 
     def value(self, obs: jax.Array) -> jax.Array:
@@ -216,12 +218,12 @@ class CMATNetwork(nn.Module):
         encoded = self.encoder(obs)
         e0 = self.critic_compressor(encoded)
         consensus_vectors = self.decoder(e0, encoded)
-        if self.config.consensus_source == "last":
+        if self.options.consensus_source == "last":
             consensus = consensus_vectors[..., -1, :]
         else:
             consensus = self.actor_compressor(consensus_vectors)
         conditioning, latent_log_prob, latent_entropy = consensus, None, None
-        if self.config.consensus_policy != "deterministic":
+        if self.options.consensus_policy != "deterministic":
             distribution = self.latent_consensus.distribution(consensus)
             if latent is None:
                 latent = (

@@ -10,6 +10,7 @@ from typing import Any
 
 from cmat.algorithms import mappo
 from cmat.algorithms.entry import AlgorithmEntry
+from cmat.algorithms.mappo.options import MLPOptions
 
 REFERENCE_DEFAULTS: dict[str, Any] = {
     "ppo": {"clip_eps": 0.2, "epochs": 5, "target_tau": 1.0, "active_masks": True},
@@ -23,7 +24,8 @@ TASK_REFERENCE_DEFAULTS: dict[str, dict[str, Any]] = {
     f"smax:{name}": {
         "ppo": {"clip_eps": clip, "gamma": gamma, "epochs": epochs,
                 "num_minibatches": minibatches},
-        "network": {"n_embd": 64, "mlp_layers": 3},
+        "network": {"n_embd": 64},
+        "happo": {"mlp_layers": 3},
     }
     for name, clip, gamma, epochs, minibatches in (
         ("3s5z", 0.2, 0.99, 5, 1),
@@ -47,6 +49,7 @@ ENTRIES = {
         label="HAPPO",
         cls="cmat.algorithms.happo.algorithm:HAPPO",
         network_fields=mappo.NETWORK_FIELDS,
+        options=MLPOptions,
         reference_defaults=REFERENCE_DEFAULTS,
         task_reference_defaults=TASK_REFERENCE_DEFAULTS,
         presets=mappo.PRESETS,

@@ -10,10 +10,11 @@ from __future__ import annotations
 from typing import Any
 
 from cmat.algorithms.entry import AlgorithmEntry
+from cmat.algorithms.mappo.options import MLPOptions
 
-NETWORK_FIELDS = ("n_embd", "mlp_layers", "init_gain", "log_std_init")
-"""`n_embd` is the hidden width of the actor's and the critic's MLPs, `mlp_layers` their
-depth, `init_gain` the actor output layer's gain (on-policy's `--gain`)."""
+NETWORK_FIELDS = ("n_embd", "init_gain", "log_std_init")
+"""`n_embd` is the hidden width of the actor's and the critic's MLPs (`mappo.mlp_layers`
+their depth), `init_gain` the actor output layer's gain (on-policy's `--gain`)."""
 
 PRESETS: dict[str, dict[str, Any]] = {"paper": {"num_envs": 8}}
 """'paper': the paper's comparison setting, the reference settings with 8 rollout
@@ -44,6 +45,7 @@ ENTRIES = {
         label="MAPPO",
         cls="cmat.algorithms.mappo.algorithm:MAPPO",
         network_fields=NETWORK_FIELDS,
+        options=MLPOptions,
         reference_defaults=REFERENCE_DEFAULTS,
         task_reference_defaults=TASK_REFERENCE_DEFAULTS,
         presets=PRESETS,

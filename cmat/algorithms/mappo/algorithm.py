@@ -22,6 +22,8 @@ import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask
 from cmat.algorithms.mappo.network import MLPActor, MLPCritic
+from cmat.algorithms.mappo.options import MLPOptions
+from cmat.algorithms.options import options_of
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     masked_mean,
@@ -30,7 +32,7 @@ from cmat.algorithms.ppo import (
     value_loss,
 )
 from cmat.algorithms.sgd import PPOAlgorithm
-from cmat.config import NetworkConfig, PPOConfig
+from cmat.config import AlgorithmOptions, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution, greedy_action
 
@@ -48,15 +50,17 @@ class MAPPO(PPOAlgorithm):
 
     @classmethod
     def build(
-        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None,
+        options: AlgorithmOptions | None = None,
     ) -> MAPPO:
+        layers = options_of(options, MLPOptions).mlp_layers
         actor = MLPActor(
             config.n_embd, spec.action_dim, spec.discrete, config.init_gain, config.log_std_init,
-            config.mlp_layers,
+            layers,
         )
         return cls(
             actor,
-            MLPCritic(config.n_embd, config.mlp_layers),
+            MLPCritic(config.n_embd, layers),
             spec.num_agents,
             spec.discrete,
             spec.state_dim,

@@ -11,18 +11,18 @@ from __future__ import annotations
 from typing import Any
 
 from cmat.algorithms.entry import AlgorithmEntry
+from cmat.algorithms.mat.options import MATOptions
 
-NETWORK_FIELDS = (
-    "n_embd", "n_head", "n_block", "init_gain", "log_std_init", "attention_block")
-"""The encoder-decoder's sizes (MATNetwork) and how its encoder attends."""
+NETWORK_FIELDS = ("n_embd", "n_head", "n_block", "init_gain", "log_std_init")
+"""The encoder-decoder's sizes (MATNetwork)."""
 
 PRESETS: dict[str, dict[str, Any]] = {"paper": {"num_envs": 8}}
 """'paper': the paper's comparison setting, the reference settings with 8 rollout
 threads."""
 
 REFERENCE_DEFAULTS: dict[str, Any] = {
-    "ppo": {"target_tau": 1.0, "active_masks": True, "value_active_masks": False,
-            "per_agent_gae": True},
+    "ppo": {"target_tau": 1.0, "active_masks": True, "value_active_masks": False},
+    "mat": {"per_agent_gae": True},
 }
 """The reference MAT (PKU-MARL/Multi-Agent-Transformer, SMAC scripts): GAE and targets from
 the collecting critic, active masks in the policy loss and entropy but not in the value
@@ -34,7 +34,8 @@ ENTRIES = {
         label="MAT",
         cls="cmat.algorithms.mat.algorithm:MAT",
         network_fields=NETWORK_FIELDS,
-        capabilities=frozenset({"per_agent_values", "minibatch_chunks"}),
+        options=MATOptions,
+        capabilities=frozenset({"minibatch_chunks"}),
         reference_defaults=REFERENCE_DEFAULTS,
         presets=PRESETS,
         ynnpack_matmuls=True,

@@ -7,7 +7,7 @@ its advantage, and the clipped objectives are averaged over agents and samples; 
 every agent, dead ones too, as the reference SMAC script runs it (`ppo.value_active_masks`
 false: `train_smac.sh` passes the store_false flag `--use_value_active_masks`).
 
-Values, as the reference with value normalisation (`ppo.per_agent_gae`, the default): GAE runs
+Values, as the reference with value normalisation (`mat.per_agent_gae`, the default): GAE runs
 per agent on each agent's own V(ô_i) with the shared team reward, and each V(ô_i) is regressed
 on its own return (mat/utils/shared_buffer.py, `compute_returns`). Without it, one GAE runs on
 the team value V(O) = mean_i V(ô_i) and every V(ô_i) is regressed on the team target, around
@@ -24,6 +24,8 @@ import jax.numpy as jnp
 
 from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked, value_active_mask
 from cmat.algorithms.mat.network import MATNetwork, MATOutput
+from cmat.algorithms.mat.options import MATOptions
+from cmat.algorithms.options import options_of
 from cmat.algorithms.ppo import (
     clipped_surrogate_loss,
     masked_mean,
@@ -32,7 +34,7 @@ from cmat.algorithms.ppo import (
     value_loss,
 )
 from cmat.algorithms.sgd import PPOAlgorithm
-from cmat.config import NetworkConfig, PPOConfig
+from cmat.config import AlgorithmOptions, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution
 
@@ -57,15 +59,17 @@ class MAT(PPOAlgorithm):
     """The encoder-decoder: MAT's (`MATNetwork`), or Sable's with the same methods
     (`cmat.algorithms.sable`)."""
     per_agent_gae: bool = False
-    """Values are per agent ([n], `ppo.per_agent_gae`), else their team mean ([])."""
+    """Values are per agent ([n], `mat.per_agent_gae`), else their team mean ([])."""
 
     @classmethod
     def build(
-        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None,
+        options: AlgorithmOptions | None = None,
     ) -> MAT:
-        ppo = ppo if ppo is not None else PPOConfig()
-        network = MATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete)
-        return cls(network, ppo.per_agent_gae)
+        own = options_of(options, MATOptions)
+        network = MATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete,
+                             own.attention_block)
+        return cls(network, own.per_agent_gae)
 
     @property
     def identity(self) -> jax.Array:

@@ -146,12 +146,14 @@ class MATNetwork(nn.Module):
     num_agents: int
     action_dim: int
     discrete: bool
+    attention_block: int = 0
+    """`EncoderOptions.attention_block`: agents per block of the encoder's attention."""
 
     def setup(self) -> None:
         cfg = self.config
         gain = cfg.init_gain
         self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain,
-                                          cfg.attention_block)
+                                          self.attention_block)
         self.value_head = AgentValueHead(cfg.n_embd, gain)
         self.action_embedding = dense(cfg.n_embd, use_bias=not self.discrete)
         self.token_norm = nn.LayerNorm()

@@ -12,13 +12,15 @@ from typing import Any
 
 from cmat.algorithms import mat
 from cmat.algorithms.entry import AlgorithmEntry
+from cmat.algorithms.pmat.options import PMATOptions
 
 NETWORK_FIELDS = mat.NETWORK_FIELDS
 """MAT's; the order scorer's output layer has gain `init_gain`, its hidden layers the
 reference's fixed 2 × 64."""
 
 REFERENCE_DEFAULTS: dict[str, Any] = {
-    "ppo": {**mat.REFERENCE_DEFAULTS["ppo"], "order_loss_coef": 1e-4, "order_in_loss": "index"},
+    "ppo": mat.REFERENCE_DEFAULTS["ppo"],
+    "pmat": {**mat.REFERENCE_DEFAULTS["mat"], "order_loss_coef": 1e-4, "order_in_loss": "index"},
 }
 """PMAT is built on the reference MAT code and trains as it does, with the reference SMAC
 script's `--ranking_loss_coef 1e-4` and its training pass's decision order: `forward` in
@@ -30,7 +32,8 @@ ENTRIES = {
         label="PMAT",
         cls="cmat.algorithms.pmat.algorithm:PMAT",
         network_fields=NETWORK_FIELDS,
-        capabilities=frozenset({"per_agent_values", "minibatch_chunks", "sampled_order"}),
+        options=PMATOptions,
+        capabilities=frozenset({"minibatch_chunks"}),
         reference_defaults=REFERENCE_DEFAULTS,
         presets=mat.PRESETS,
         ynnpack_matmuls=True,

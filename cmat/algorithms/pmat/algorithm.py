@@ -4,8 +4,8 @@ A scoring block on Ô gives each agent a weight w_i in (1, 10) (`OrderScorer`); 
 drawn without replacement, P(σ) = Π_k w_σ(k) / Σ_{j≥k} w_σ(j), and MAT's decoder acts along it.
 The order is stored with the transition; log P(σ) gets its own clipped PPO term with the team
 advantage (with per-agent GAE: the mean advantage over every agent, as the reference's
-`mat_trainer.py`), weighted by `ppo.order_loss_coef`, added to MAT's loss (eq. mat). The loss
-decodes the stored actions along `ppo.order_in_loss`: the sampled order, or the agents' index
+`mat_trainer.py`), weighted by `pmat.order_loss_coef`, added to MAT's loss (eq. mat). The loss
+decodes the stored actions along `pmat.order_in_loss`: the sampled order, or the agents' index
 order as the reference's training pass does. Values, GAE and active masks are MAT's.
 
 Reference: NUDT-BI-MARL/PMAT (8894f9e), `mat/algorithms/mat/algorithm/pma_transformer.py`,
@@ -14,7 +14,7 @@ Reference: NUDT-BI-MARL/PMAT (8894f9e), `mat/algorithms/mat/algorithm/pma_transf
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple, cast
 
 import jax
@@ -23,9 +23,11 @@ import jax.numpy as jnp
 from cmat.algorithms.base import ActResult, Batch, Params
 from cmat.algorithms.mat.algorithm import MAT
 from cmat.algorithms.mat.network import OrderScorer
+from cmat.algorithms.options import options_of
+from cmat.algorithms.pmat.options import PMATOptions
 from cmat.algorithms.ppo import clipped_surrogate_loss
 from cmat.algorithms.sgd import PPOAlgorithm
-from cmat.config import NetworkConfig, PPOConfig
+from cmat.config import AlgorithmOptions, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 
 
@@ -58,12 +60,15 @@ def sample_order(scores: jax.Array, key: jax.Array) -> jax.Array:
 class PMAT(PPOAlgorithm):
     mat: MAT
     scorer: OrderScorer
+    options: PMATOptions = field(default_factory=PMATOptions)
 
     @classmethod
     def build(
-        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None,
+        options: AlgorithmOptions | None = None,
     ) -> PMAT:
-        return cls(MAT.build(config, spec, ppo), OrderScorer(config.init_gain))
+        own = options_of(options, PMATOptions)
+        return cls(MAT.build(config, spec, ppo, own), OrderScorer(config.init_gain), own)
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         mat_key, scorer_key = jax.random.split(key)
@@ -103,10 +108,10 @@ class PMAT(PPOAlgorithm):
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
-        """MAT's loss along `ppo.order_in_loss` plus the clipped order term."""
+        """MAT's loss along `pmat.order_in_loss` plus the clipped order term."""
         sampled: OrderSample = batch.extras
         orders = (
-            sampled.order if ppo.order_in_loss == "sampled"
+            sampled.order if self.options.order_in_loss == "sampled"
             else jnp.broadcast_to(self.mat.identity, sampled.order.shape)
         )
         total, metrics, output = self.mat.loss_along(
@@ -119,7 +124,7 @@ class PMAT(PPOAlgorithm):
         order_loss, diagnostics = clipped_surrogate_loss(
             order_log_prob(scores, sampled.order) - sampled.log_prob, advantages, ppo.clip_eps
         )
-        return total + ppo.order_loss_coef * order_loss, {
+        return total + self.options.order_loss_coef * order_loss, {
             **metrics,
             "order_loss": order_loss,
             "order_approx_kl": diagnostics["approx_kl"],

@@ -7,7 +7,7 @@ from step to step of an episode (decayed by κ, reset at episode starts, `SableC
 timestep within the episode is encoded into every retention, and the update trains on whole
 rollout sequences of each environment, from the state it had before the rollout: minibatches
 are sets of environments, the chunkwise form of retention computes each sequence
-(`network.retention_chunk`; None, the whole rollout at once, is Mava's
+(`sable.retention_chunk`; None, the whole rollout at once, is Mava's
 `timestep_chunk_size: ~`). `ff_sable` (`FFSable`) is Mava's feed-forward Sable
 (mava/systems/sable/anakin/ff_sable.py): every step starts from empty states.
 
@@ -47,10 +47,12 @@ import optax
 from cmat.algorithms.base import ActResult, Batch, Params
 from cmat.algorithms.mat.algorithm import MAT
 from cmat.algorithms.mat.network import MATOutput
+from cmat.algorithms.options import options_of
 from cmat.algorithms.ppo import normalize
 from cmat.algorithms.sable.network import SableMemory, SableNetwork, empty_memory
+from cmat.algorithms.sable.options import FFSableOptions, SableOptions
 from cmat.algorithms.sgd import Metrics, minibatch_sgd
-from cmat.config import NetworkConfig, PPOConfig
+from cmat.config import AlgorithmOptions, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 
 
@@ -129,14 +131,16 @@ class Sable(MAT):
 
     @classmethod
     def build(
-        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None,
+        options: AlgorithmOptions | None = None,
     ) -> Sable:
-        ppo = ppo if ppo is not None else PPOConfig()
+        own = options_of(options, SableOptions if cls.memory else FFSableOptions)
         network = SableNetwork(
             config, spec.num_agents, spec.action_dim, spec.discrete, memory=cls.memory,
-            decay_scale=config.retention_decay, chunk_steps=config.retention_chunk,
+            decay_scale=own.retention_decay,
+            chunk_steps=own.retention_chunk if isinstance(own, SableOptions) else None,
         )
-        return cls(network, ppo.per_agent_gae)
+        return cls(network, own.per_agent_gae)
 
     @property
     def recurrent(self) -> bool:

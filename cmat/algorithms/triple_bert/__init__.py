@@ -9,22 +9,24 @@ from __future__ import annotations
 
 from typing import Any
 
+from cmat.algorithms.cmat import NETWORK_FIELDS
 from cmat.algorithms.cmat import PRESETS as CMAT_PRESETS
 from cmat.algorithms.entry import AlgorithmEntry
-
-NETWORK_FIELDS = (
-    "n_embd", "n_head", "n_block", "compressor_heads", "init_gain", "log_std_init",
-    "attention_block")
-"""CMAT's sizes without its decoder and consensus (TripleBERTNetwork), and how its encoder
-attends."""
+from cmat.algorithms.triple_bert.options import TripleBERTOptions
 
 REFERENCE_DEFAULTS: dict[str, Any] = {}
 """The paper's baseline setting: the reference MAT's (the dataclass defaults), trained as
 the paper trains CMAT (joint ratio clipped to [1 − ε, 1 + ε], target critic τ = 0.1)."""
 
-PRESETS = CMAT_PRESETS
-"""CMAT's: 'paper' the paper's setting (the baseline trained as the paper trains CMAT; the
-consensus fields it sets are not read), 'tuned' the study's two changes."""
+PRESETS: dict[str, dict[str, Any]] = {
+    name: {**{key: value for key, value in values.items() if key != "cmat"},
+           "triple_bert": {key: value for key, value in values.get("cmat", {}).items()
+                           if key in TripleBERTOptions.__dataclass_fields__}}
+    for name, values in CMAT_PRESETS.items()
+}
+"""CMAT's, its section's values that Triple-BERT has (the joint ratio's) in Triple-BERT's:
+'paper' the paper's setting (the baseline trained as the paper trains CMAT), 'tuned' the
+study's two changes."""
 
 YNNPACK_MATMULS = False
 """Measured no faster with them (1.00 on SMAX 2s3z; docs/speed.md)."""
@@ -34,7 +36,8 @@ ENTRIES = {
         label="Triple-BERT",
         cls="cmat.algorithms.triple_bert.algorithm:TripleBERT",
         network_fields=NETWORK_FIELDS,
-        capabilities=frozenset({"joint_ratio", "minibatch_chunks"}),
+        options=TripleBERTOptions,
+        capabilities=frozenset({"minibatch_chunks"}),
         reference_defaults=REFERENCE_DEFAULTS,
         presets=PRESETS,
         ynnpack_matmuls=YNNPACK_MATMULS,

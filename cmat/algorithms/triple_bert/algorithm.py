@@ -12,9 +12,11 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from cmat.algorithms.cmat.algorithm import CMAT
+from cmat.algorithms.options import options_of
 from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.algorithms.triple_bert.network import TripleBERTNetwork, TripleBERTOutput
-from cmat.config import NetworkConfig, PPOConfig
+from cmat.algorithms.triple_bert.options import TripleBERTOptions
+from cmat.config import AlgorithmOptions, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 
 
@@ -27,6 +29,13 @@ class TripleBERT(CMAT):
 
     @classmethod
     def build(
-        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None
+        cls, config: NetworkConfig, spec: EnvSpec, ppo: PPOConfig | None = None,
+        options: AlgorithmOptions | None = None,
     ) -> TripleBERT:
-        return cls(TripleBERTNetwork(config, spec.num_agents, spec.action_dim, spec.discrete))
+        return cls(TripleBERTNetwork(config, options_of(options, TripleBERTOptions),
+                                     spec.num_agents, spec.action_dim, spec.discrete))
+
+    @property
+    def stochastic(self) -> bool:
+        """Never: Triple-BERT has no consensus."""
+        return False

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import flax.linen as nn
 import jax
 
+from cmat.algorithms.triple_bert.options import TripleBERTOptions
 from cmat.config import NetworkConfig
 from cmat.networks.heads import ActionHead, ValueHead, mask_unavailable
 from cmat.networks.layers import Compressor, ObservationEncoder
@@ -32,16 +33,17 @@ class TripleBERTNetwork(nn.Module):
     """Triple-BERT actor-critic over one team: obs [..., n, obs_dim] -> TripleBERTOutput."""
 
     config: NetworkConfig
+    options: TripleBERTOptions
     num_agents: int
     action_dim: int
     discrete: bool
 
     def setup(self) -> None:
-        cfg = self.config
+        cfg, own = self.config, self.options
         gain = cfg.init_gain
         self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain,
-                                          cfg.attention_block)
-        self.critic_compressor = Compressor(cfg.n_embd, cfg.compressor_heads, cfg.n_embd, gain)
+                                          own.attention_block)
+        self.critic_compressor = Compressor(cfg.n_embd, own.compressor_heads, cfg.n_embd, gain)
         self.critic_mlp = ValueHead(cfg.n_embd, gain)
         self.actor_mlp = ActionHead(
             cfg.n_embd, self.action_dim, self.discrete, gain, cfg.log_std_init

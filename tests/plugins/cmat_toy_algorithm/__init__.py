@@ -5,11 +5,13 @@ declares everything cmat needs to know about the algorithm; the class (`toy.py`)
 when a run is built."""
 
 from cmat.algorithms import AlgorithmEntry, mappo
+from cmat.algorithms.mappo.options import MLPOptions
 
 ENTRY = AlgorithmEntry(
     label="Toy MAPPO",
     cls="cmat_toy_algorithm.toy:ToyMAPPO",
     network_fields=mappo.NETWORK_FIELDS,
+    options=MLPOptions,
     reference_defaults={
         **mappo.REFERENCE_DEFAULTS, "ppo": {**mappo.REFERENCE_DEFAULTS["ppo"], "lr": 1e-3},
     },
