@@ -111,7 +111,7 @@ def test_more_episodes_than_slots_play_one_after_another_and_count_each_once(
 
     config = load_config(overrides=["env=matrix:fig1", "env_kwargs.payoff=[[10,4],[6,8]]"])
     env = make_env(config.env, **config.env_kwargs)
-    algorithm = build_algorithm(config.algo, config.network, env.spec, config.ppo)
+    algorithm = build_algorithm(config.algo, config.network, env.spec, config.ppo, config.options)
     _, timestep = env.reset(jax.random.PRNGKey(0))
     params = algorithm.init(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
     one = evaluate_in_graph(env, algorithm, params, jax.random.PRNGKey(2), 1)

@@ -150,7 +150,7 @@ def test_happo_takes_harls_tuned_config_of_the_map() -> None:
 
 def test_happo_builds_the_mlp_depth_it_is_given() -> None:
     config = load_config(overrides=["algo=happo", "env=smax:3s5z_vs_3s6z"])
-    algorithm = build_algorithm("happo", config.network, spec(), config.ppo)
+    algorithm = build_algorithm("happo", config.network, spec(), config.ppo, config.options)
     params = algorithm.init(jax.random.PRNGKey(0), jnp.zeros((3, 6)), jnp.ones((3, 4), bool))
     hidden = [path for path in kernels(params["critic"]) if "MLPTrunk_0" in path]
     assert len(hidden) == 3
@@ -160,7 +160,7 @@ def test_mappo_appends_no_second_agent_id() -> None:
     """Where the environment's observations already end with the id (`env_kwargs.agent_id`),
     the shared actor reads them as they are."""
     config = load_config(overrides=["algo=mappo"])
-    plain = build_algorithm("mappo", config.network, spec(), config.ppo)
+    plain = build_algorithm("mappo", config.network, spec(), config.ppo, config.options)
     with_id = build_algorithm(
         "mappo", config.network, dataclasses.replace(spec(), agent_id=True), config.ppo
     )
@@ -374,7 +374,7 @@ def test_active_masks_remove_a_dead_agent_from_every_mean(algo: str) -> None:
 
 def test_happo_agent_loss_masks_samples_where_the_agent_is_dead() -> None:
     config = load_config(overrides=["algo=happo"])
-    algorithm = build_algorithm("happo", config.network, spec(), config.ppo)
+    algorithm = build_algorithm("happo", config.network, spec(), config.ppo, config.options)
     params, batch = dead_agent_batch(algorithm, 3, per_agent=False)
     alive = batch.alive.at[:, 1].set(jnp.array([True, False, True, False, False]))
     batch = batch._replace(alive=alive)
@@ -445,7 +445,7 @@ def test_mappo_critic_reads_the_smax_world_state() -> None:
     np.testing.assert_array_equal(timestep.global_state, env.env.get_world_state(state))
     assert env.spec.state_dim == timestep.global_state.shape[0] > 0
     config = load_config(overrides=["env=smax:3m", "algo=mappo"])
-    algorithm = build_algorithm("mappo", config.network, env.spec, config.ppo)
+    algorithm = build_algorithm("mappo", config.network, env.spec, config.ppo, config.options)
     params = jax.jit(algorithm.init)(jax.random.PRNGKey(1), timestep.obs, timestep.action_mask)
     first = params["critic"]["params"]["MLPTrunk_0"]["Dense_0"]["kernel"]
     assert first.shape[0] == env.spec.state_dim

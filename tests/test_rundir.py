@@ -18,7 +18,7 @@ from matplotlib.image import imread
 from cmat import plots
 from cmat.algorithms.cmat.options import CMATOptions
 from cmat.cli import main
-from cmat.config import TrainConfig
+from cmat.config import AlgorithmOptions, TrainConfig
 from cmat.configfile import field_names
 from cmat.errors import CmatError
 from cmat.plots import plot_runs, run_names
@@ -40,9 +40,11 @@ def eval_rows(steps: list[int], seeds: int, win_rate: bool) -> list[dict]:
 
 @pytest.mark.unit
 def test_create_writes_config_that_reads_back(tmp_path: Path) -> None:
-    config = TrainConfig(env="smax:3m", seeds=3, total_steps=1234)
+    config = TrainConfig(env="smax:3m", seeds=3, total_steps=1234, options=CMATOptions())
     run = RunDir.create(tmp_path / "a" / "b", config)
     assert run.config() == config
+    bare = RunDir.create(tmp_path / "bare", replace(config, options=AlgorithmOptions()))
+    assert bare.config() == config
     assert RunDir.open(run.path).config() == config
 
 
