@@ -20,20 +20,13 @@ import distrax
 import jax
 import jax.numpy as jnp
 
-from cmat.algorithms.base import ActResult, Batch, Params, active_mask, chunked
+from cmat.algorithms.base import ActResult, Batch, Params, chunked
 from cmat.algorithms.cmat.blocks import finetune_labels
 from cmat.algorithms.cmat.network import CMATNetwork, PolicyOutput
 from cmat.algorithms.cmat.options import CMATOptions
+from cmat.algorithms.joint import joint_ratio_loss
 from cmat.algorithms.options import options_of
-from cmat.algorithms.ppo import (
-    clipped_surrogate_loss,
-    joint_clip_range,
-    joint_log_ratio,
-    masked_mean,
-    policy_diagnostics,
-    total_loss,
-    value_loss,
-)
+from cmat.algorithms.ppo import joint_log_ratio
 from cmat.algorithms.sgd import PPOAlgorithm
 from cmat.config import AlgorithmOptions, NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -130,37 +123,12 @@ class CMAT(PPOAlgorithm):
     def loss(
         self, params: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
-        """Clipped surrogate on the joint ratio, mean per-agent entropy (over active agents with
-        `ppo.active_masks`), team value loss; with a stochastic consensus, π_c's entropy gets its
-        own bonus.
-
-        Named departures from the paper (`JointRatioOptions`): `joint_clip=per_agent` clips R to
-        [(1−ε)^k, (1+ε)^k] for k active agents instead of [1−ε, 1+ε] (eq. cmat);
-        `entropy_reduction=sum` weights the entropy of the joint policy Σ_i H(π_i) instead of
-        its mean over agents (n times the mean without active masks)."""
-        own = self.network.options
+        """The joint ratio's objective (`cmat.algorithms.joint.joint_ratio_loss`) on the team
+        value V(O); with a stochastic consensus, π_c's entropy gets its own bonus
+        (`cmat.consensus_ent_coef`)."""
         log_ratio, output, distribution = self.log_ratio(params, batch, ppo.minibatch_chunks)
-        clip_range = None
-        if own.joint_clip == "per_agent":
-            alive = batch.alive if batch.alive is not None else jnp.ones(batch.log_probs.shape)
-            clip_range = joint_clip_range(ppo.clip_eps, jnp.sum(alive, axis=-1))
-        policy_loss, diagnostics = clipped_surrogate_loss(
-            log_ratio, batch.advantages, ppo.clip_eps, clip_range=clip_range
-        )
-        entropies = distribution.entropy()
-        entropy = masked_mean(entropies, active_mask(batch, ppo))
-        if own.entropy_reduction == "sum":
-            entropy = entropy * entropies.shape[-1]
-        critic_loss = value_loss(output.value, batch.values, batch.targets, ppo)
-        total, terms = total_loss(policy_loss, entropy, critic_loss, ppo)
-        metrics = {
-            **terms,
-            **diagnostics,
-            **policy_diagnostics(
-                distribution.log_prob(batch.actions) - batch.log_probs, log_ratio, ppo.clip_eps,
-                entropies, batch.alive,
-            ),
-        }
+        total, metrics = joint_ratio_loss(
+            log_ratio, distribution, output.value, batch, ppo, self.network.options)
         if self.stochastic:
             consensus_entropy = jnp.mean(output.latent_entropy)
             total = total - self.network.options.consensus_ent_coef * consensus_entropy

@@ -1,7 +1,8 @@
 """Triple-BERT (Zhao et al. 2025) as the paper's baseline: the team as one multi-action agent
 whose per-agent factors see no consensus, trained as CMAT.
 
-`algorithm.py` holds the class (CMAT's acting and loss), `network.py` the network. This module
+`algorithm.py` holds the class (acting, and the joint-ratio objective it shares with CMAT,
+`cmat.algorithms.joint`), `network.py` the network. This module
 is its registry entry and settings, read without importing JAX.
 """
 
