@@ -104,7 +104,7 @@ def clipped_surrogate_loss(
 def joint_clip_range(clip_eps: float, active_agents: jax.Array) -> tuple[jax.Array, jax.Array]:
     """[(1−ε)^k, (1+ε)^k] for k active agents per sample [B]: the joint ratio's range when each
     agent's share of it, the geometric mean R^(1/k), is held to [1−ε, 1+ε]
-    (`ppo.joint_clip=per_agent`). With k = 1 it is the paper's [1−ε, 1+ε]."""
+    (`JointRatioOptions.joint_clip` per_agent). With k = 1 it is the paper's [1−ε, 1+ε]."""
     k = active_agents.astype(jnp.float32)
     return (1.0 - clip_eps) ** k, (1.0 + clip_eps) ** k
 

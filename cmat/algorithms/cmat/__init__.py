@@ -40,7 +40,7 @@ ratio clipped to [1 − ε, 1 + ε] (eq. cmat), entropy averaged over agents, an
 TUNED_SETTINGS: dict[str, Any] = {"ppo": {"target_tau": 1.0}, "cmat": {"joint_clip": "per_agent"}}
 """CMAT's default since the learning-speed study (docs/results/index.md), where it
 learned faster per env step than the paper's settings, MAT and MAPPO on SMAX 6h_vs_8z, 5m_vs_6m
-and 3s5z_vs_3s6z: the per-agent clip of the joint ratio (`ppo.joint_clip=per_agent`, which
+and 3s5z_vs_3s6z: the per-agent clip of the joint ratio (`cmat.joint_clip=per_agent`, which
 replaces clip(R, 1 − ε, 1 + ε) of eq. cmat by clip(R, (1 − ε)^k, (1 + ε)^k) for k active agents)
 and no lag in the target critic (τ = 1: V_φ- is the critic as the last update left it, standard
 PPO). Joint ratio, consensus, team critic and order independence are unchanged. `--preset paper`

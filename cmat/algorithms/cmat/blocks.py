@@ -31,7 +31,7 @@ stages are those CMAT's entry declares (`cmat.algorithms.cmat.FINETUNE_STAGES`),
 Consensus enhancement freezes the action policy (Actor-MLP, with the continuous heads' log_std,
 which is a parameter of the Actor-MLP) and the encoder and Critic-Compressor, which the paper
 names as neither; action-policy enhancement freezes everything that forms the consensus. With a
-stochastic consensus (`network.consensus_policy`), its policy π_c (`latent_consensus`) is part of
+stochastic consensus (`cmat.consensus_policy`), its policy π_c (`latent_consensus`) is part of
 the consensus generation μ: trained with it, frozen with it."""
 
 def finetune_labels(params: Params, mode: str) -> Any:
