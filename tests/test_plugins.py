@@ -73,8 +73,12 @@ def test_a_plugin_algorithm_is_found_configured_and_trained(tmp_path: Path) -> N
     assert done.returncode == 0, done.stderr[-3000:]
     text = (out / "config.yaml").read_text()
     assert yaml.safe_load(text)["ppo"]["lr"] == 1e-3 and "algorithm toy_mappo" in text
+    assert yaml.safe_load(text)["toy_mappo"] == {"mlp_layers": 2}
     evaluation = pd.read_csv(out / "metrics.csv").query("kind == 'eval'")
     assert evaluation["episode_return"].iloc[-1] == pytest.approx(100.0)
+    deeper = cmat(env, "train", "--algo", "toy_mappo", "--dry-run", "--set",
+                  "toy_mappo.mlp_layers=3")
+    assert "  mlp_layers: 3  # command line" in deeper.stdout, deeper.stderr[-3000:]
     broken = cmat(installed(tmp_path / "broken", "mat = cmat_toy_algorithm:ENTRY",
                             "cmat.algorithms"), "train", "--dry-run")
     assert broken.returncode == 0, broken.stderr[-3000:]
