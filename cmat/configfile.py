@@ -69,6 +69,9 @@ def from_mapping(values: dict[str, Any]) -> TrainConfig:
     every check of `validate`."""
     algo = values.get("algo", TrainConfig.algo)
     options = algorithm_options(algo)
+    if OPTIONS in values:
+        raise CmatError(f"unreadable run config: unknown key {OPTIONS} (the algorithm's "
+                        f"section is named by it: {algo})")
     inner = {key: value for key, value in values.items() if key != algo}
     if algo in values:
         inner[OPTIONS] = values[algo]

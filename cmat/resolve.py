@@ -163,6 +163,9 @@ def config_layers(
                         f"it cannot change")
     for label, layer in layers:
         for key, value in layer.items():
+            if key == OPTIONS:
+                raise CmatError(f"invalid config ({label}): unknown key {OPTIONS}; the "
+                                f"algorithm's section is named by it: {algo}.KEY")
             if key in algorithm_names() and key != algo:
                 field = next(iter(value), "KEY") if isinstance(value, dict) and value else "KEY"
                 raise CmatError(f"invalid config ({label}): {key}.{field} is an option of "

@@ -170,6 +170,7 @@ def test_an_algorithms_section_is_named_by_it_and_explained_layer_by_layer() -> 
     (["algo=ff_sable", "ff_sable.retention_chunk=4"], "unknown key ff_sable.retention_chunk"),
     (["algo=pmat", "pmat.order_loss_coef=-1"], "pmat.order_loss_coef must be in [0.0, inf)"),
     (["algo=happo", "happo=3"], "happo: a section (set its keys as happo.KEY=VALUE), got 3"),
+    (["algo=mat", "options.per_agent_gae=false"], "unknown key options; the algorithm's section"),
 ])
 def test_a_bad_section_key_is_one_line_naming_it(overrides: list[str], message: str) -> None:
     from cmat.resolve import load_config

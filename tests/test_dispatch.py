@@ -78,7 +78,6 @@ def test_every_order_is_served_expired_open_or_dropped(busy_env: DispatchEnv) ->
     assert bool(timesteps.done[-1].all()) and not bool(timesteps.done[:-1].any())
 
 
-@pytest.mark.unit
 def test_busy_vehicles_cannot_take_orders_and_claims_never_share_an_order(
         busy_env: DispatchEnv) -> None:
     states, _ = rollout(busy_env, jax.random.PRNGKey(1), 6)

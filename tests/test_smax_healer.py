@@ -228,7 +228,6 @@ def expected_ally_masks(units: Any) -> np.ndarray:
     return masks
 
 
-@pytest.mark.unit
 def test_mmm2_random_play_ends_episodes_with_a_win_rate_and_the_mask_matches() -> None:
     env = make_env("smax:MMM2")
     num_envs, num_steps = 16, 120

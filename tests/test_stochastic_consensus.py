@@ -120,7 +120,6 @@ def joint_distribution(
     return jax.vmap(given)(jnp.arange(algorithm.network.options.consensus_codes)).sum(axis=0)
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("policy", ["categorical", "deterministic"])
 def test_categorical_consensus_represents_a_correlated_joint_policy_no_product_can(
     policy: str,
