@@ -1,9 +1,10 @@
 """Typed run configuration: dataclass defaults, overridden by a YAML file, then by `key=value`.
 
 Defaults are the reference MAT hyper-parameters for SMAC (the reference MAT implementation's
-SMAC train scripts) except where a field's docstring says otherwise. OmegaConf merges and
-type-checks the layers; the result is converted back to these frozen dataclasses, so a typo or a
-wrong type fails before any tracing.
+SMAC train scripts) except where a field's docstring says otherwise. The sections here are those
+every algorithm reads; each algorithm's own is an `AlgorithmOptions` subclass in its package's
+`options.py`. OmegaConf merges and type-checks the layers (`cmat.resolve`); the result is
+converted back to these frozen dataclasses, so a typo or a wrong type fails before any tracing.
 """
 
 from __future__ import annotations
