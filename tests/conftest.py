@@ -6,20 +6,28 @@ separate closures; XLA's persistent cache keys on the compiled program, so the s
 is a file read. The directory is fresh for every session and removed at its end, so a test
 never depends on what an earlier session compiled.
 
+Where XLA's optimisations are skipped, its CPU fusion emitters are off as well
+(`xla_cpu_use_fusion_emitters`): unoptimised programs then compile in about two thirds of the
+time (tests/test_network.py: 93 s against 149 s on the 2-core EPYC, 2026-12-07), where for
+optimised ones the emitters pay (the Fig. 1 learning check: 49 s with them, 88 s without).
+
 The workers' OpenBLAS (LAPACK's QR in the orthogonal initialisers) runs on one thread, as the
 trainers' initialisation does (`cmat.runners.base.single_threaded_lapack`): with two workers
 on two cores, its threads otherwise spin against XLA's for up to a second per initialisation.
 """
 
+import functools
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import pytest
 
 CACHE_VARIABLE = "JAX_COMPILATION_CACHE_DIR"
 CACHE_KEY = pytest.StashKey[str]()
+FUSION_EMITTERS = "xla_cpu_use_fusion_emitters"
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -57,6 +65,36 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         os.environ.pop(CACHE_VARIABLE, None)
 
 
+def without_fusion_emitters_when_unoptimised(
+    get_compile_options: Callable[..., Any],
+) -> Callable[..., Any]:
+    """JAX's `get_compile_options` that also turns XLA's CPU fusion emitters off whenever
+    `jax_disable_most_optimizations` is on (as `compiler_options={FUSION_EMITTERS: False}`
+    would for one program; an option the program sets itself wins)."""
+    import jax
+
+    @functools.wraps(get_compile_options)
+    def wrapped(*args: Any, **kwargs: Any) -> Any:
+        options = get_compile_options(*args, **kwargs)
+        if jax.config.read("jax_disable_most_optimizations"):
+            overrides = dict(options.env_option_overrides)
+            overrides.setdefault(FUSION_EMITTERS, False)
+            options.env_option_overrides = list(overrides.items())
+        return options
+
+    return wrapped
+
+
+@pytest.fixture(scope="session", autouse=True)
+def quick_compiles_skip_fusion_emitters() -> Iterator[None]:
+    from jax._src import compiler  # JAX's one place where compile options are made
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(compiler, "get_compile_options",
+                      without_fusion_emitters_when_unoptimised(compiler.get_compile_options))
+        yield
+
+
 def set_optimisations_off(off: bool) -> Iterator[None]:
     import jax  # not at the top: JAX reads JAX_COMPILATION_CACHE_DIR when it is first imported
 
@@ -76,6 +114,8 @@ def quick_compiles(request: pytest.FixtureRequest) -> Iterator[None]:
         return
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+        flags = os.environ.get("XLA_FLAGS", "")
+        patch.setenv("XLA_FLAGS", f"{flags} --{FUSION_EMITTERS}=false".strip())
         yield from set_optimisations_off(True)
 
 

@@ -33,7 +33,8 @@ def free_port() -> int:
 
 def environment(devices: int) -> dict[str, str]:
     return {**os.environ, "JAX_PLATFORMS": "cpu",
-            "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}
+            "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} "
+                         f"--xla_force_host_platform_device_count={devices}"}
 
 
 def start_pair(arguments: list[str], logs: Path) -> list[subprocess.Popen[bytes]]:
