@@ -69,14 +69,15 @@ def without_fusion_emitters_when_unoptimised(
     get_compile_options: Callable[..., Any],
 ) -> Callable[..., Any]:
     """JAX's `get_compile_options` that also turns XLA's CPU fusion emitters off whenever
-    `jax_disable_most_optimizations` is on (as `compiler_options={FUSION_EMITTERS: False}`
-    would for one program; an option the program sets itself wins)."""
+    `jax_disable_most_optimizations` is on and JAX computes on the CPU (as
+    `compiler_options={FUSION_EMITTERS: False}` would for one program; an option the program
+    sets itself wins)."""
     import jax
 
     @functools.wraps(get_compile_options)
     def wrapped(*args: Any, **kwargs: Any) -> Any:
         options = get_compile_options(*args, **kwargs)
-        if jax.config.read("jax_disable_most_optimizations"):
+        if jax.config.read("jax_disable_most_optimizations") and jax.default_backend() == "cpu":
             overrides = dict(options.env_option_overrides)
             overrides.setdefault(FUSION_EMITTERS, False)
             options.env_option_overrides = list(overrides.items())
