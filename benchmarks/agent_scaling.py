@@ -54,6 +54,7 @@ LINES = {
     "cmat m=4": ("cmat", ["cmat.consensus_iterations=4"]),
     "cmat m=4 blocks": ("cmat", ["cmat.consensus_iterations=4",
                                  "cmat.attention_block=128"]),
+    "cmat m=2 k=16": ("cmat", ["cmat.consensus_iterations=2", "cmat.inducing_points=16"]),
     "mat": ("mat", []),
     "mappo": ("mappo", []),
     "env only": ("env", []),

@@ -44,6 +44,7 @@ LINES = {
     "cmat m=n": ("cmat", ["cmat.consensus_iterations=n"]),
     "cmat m=2": ("cmat", ["cmat.consensus_iterations=2"]),
     "cmat m=5": ("cmat", ["cmat.consensus_iterations=5"]),
+    "cmat m=2 k=16": ("cmat", ["cmat.consensus_iterations=2", "cmat.inducing_points=16"]),
     "mat": ("mat", []),
     "sable": ("sable", []),
     "sable (feed-forward)": ("ff_sable", []),

@@ -17,12 +17,14 @@ cd "$work"  # nothing of the checkout is importable from here
 # The processes below import the same modules: the first writes their bytecode for the others.
 unset PYTHONDONTWRITEBYTECODE
 # What is checked here is the package, not XLA's optimiser: its programs compile unoptimised
-# (as the test suite's quick modules do) and into one cache the processes share.
+# (as the test suite's quick modules do) and into one cache the processes share: the API's run
+# below trains the command line's program.
 export JAX_DISABLE_MOST_OPTIMIZATIONS=1 XLA_FLAGS="${XLA_FLAGS:-} --xla_cpu_use_fusion_emitters=false"
 export JAX_COMPILATION_CACHE_DIR="$work/jax-cache"
 export TF_CPP_MIN_LOG_LEVEL=2
 "$work/venv/bin/cmat" --version
-"$work/venv/bin/cmat" train --env matrix:fig1 --steps 800 --seeds 2 --out cli-run > cli.log
+"$work/venv/bin/cmat" train --env matrix:fig1 --steps 800 --seeds 2 --set ppo.lr=1e-3 \
+    --out cli-run > cli.log
 "$work/venv/bin/cmat" eval --run cli-run --episodes 2 --seed 1
 "$work/venv/bin/cmat" train --env dispatch:manhattan-100-mid --dry-run | tail -1
 "$work/venv/bin/cmat" experiment dispatch --dry-run --out grid | tail -1

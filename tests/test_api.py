@@ -15,6 +15,8 @@ from cmat.resolve import nested
 
 REPO = Path(__file__).resolve().parents[1]
 
+pytestmark = pytest.mark.quick_compiles
+
 
 def test_import_needs_no_jax_and_exports_the_api() -> None:
     code = ("import sys, cmat; [getattr(cmat, name) for name in ('train', 'Run', 'open_run', "

@@ -199,6 +199,46 @@ def test_a_scanned_decoder_keeps_order_independence() -> None:
                                rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.unit
+def test_inducing_points_keep_order_independence() -> None:
+    """Agents attending through learned vectors: permuting the agents permutes the policies
+    and keeps the value and the consensus; the network has the inducing vectors as
+    parameters and computes something else than full attention."""
+    algorithm, params, obs, mask = build(True, inducing_points=3)
+    permutation = np.array([3, 0, 4, 1, 2])
+    apply = jax.jit(algorithm.network.apply)
+    original, permuted = apply(params, obs, mask), apply(params, obs[:, permutation],
+                                                         mask[:, permutation])
+    np.testing.assert_allclose(permuted.value, original.value, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(permuted.consensus, original.consensus, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(permuted.action_params, original.action_params[:, permutation],
+                               rtol=1e-5, atol=1e-5)
+    shapes = {jax.tree_util.keystr(path): leaf.shape
+              for path, leaf in jax.tree_util.tree_leaves_with_path(params)}
+    assert [shape for path, shape in shapes.items() if "inducing" in path] == [(3, 32)]
+    assert not any("inducing" in path for path, _ in jax.tree_util.tree_leaves_with_path(
+        build(True)[1]))
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("inducing", [0, 4])
+def test_inducing_points_make_the_encoders_largest_array_linear_in_agents(inducing: int) -> None:
+    """The largest intermediate of the encoder's forward and backward pass grows as n² with
+    full attention and as n with k inducing points (traced, not run: shapes only)."""
+    from cmat.networks.layers import ObservationEncoder
+
+    def largest(agents: int) -> int:
+        encoder = ObservationEncoder(16, 1, 1, inducing_points=inducing)
+        obs = jnp.zeros((2, agents, 6))
+        params = jax.eval_shape(encoder.init, jax.random.PRNGKey(0), obs)
+        jaxpr = jax.make_jaxpr(jax.grad(lambda p: jnp.sum(encoder.apply(p, obs))))(params)
+        return max(int(np.prod(var.aval.shape)) for equation in jaxpr.jaxpr.eqns
+                   for var in equation.outvars)
+
+    growth = largest(400) / largest(100)
+    assert growth == pytest.approx(16 if inducing == 0 else 4, rel=0.05)
+
+
 @pytest.mark.parametrize(("agents", "block"), [(7, 3), (8, 4), (5, 1)])
 def test_blockwise_attention_is_full_attention_in_value_and_gradient(
     agents: int, block: int

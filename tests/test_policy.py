@@ -50,12 +50,13 @@ def test_a_users_greedy_loop_scores_what_cmat_eval_scores(smax_run: Path) -> Non
     reset_key, rng = jax.random.split(rng)
     env_state, step = jax.vmap(env.reset)(jax.random.split(reset_key, episodes))
     returns, finished = np.zeros(episodes), np.zeros(episodes, bool)
+    step_teams = jax.jit(jax.vmap(env.step))
     for key in jax.random.split(rng, policy.spec.max_episode_steps):
         actions = policy.greedy(step.obs, step.action_mask)
         assert actions.shape == (episodes, 3)
         assert np.asarray(step.action_mask)[np.arange(episodes)[:, None], np.arange(3),
                                             np.asarray(actions)].all()
-        env_state, step = jax.vmap(env.step)(jax.random.split(key, episodes), env_state, actions)
+        env_state, step = step_teams(jax.random.split(key, episodes), env_state, actions)
         returns += np.where(finished, 0.0, np.asarray(step.reward))
         finished |= np.asarray(step.done)
     np.testing.assert_allclose(returns.mean(), expected, rtol=1e-5)

@@ -5,7 +5,7 @@ algorithm's `options.py` composes its section from these and fields of its own. 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, ClassVar, TypeVar
 
 from cmat.config import AlgorithmOptions
 from cmat.errors import CmatError
@@ -30,11 +30,23 @@ class EncoderOptions(AlgorithmOptions):
     once. The same result up to floating-point order, and the same parameters: a run may change
     it when resumed. Other attentions (compressors, decoder cross-attention) already scale
     linearly in n at a fixed m."""
+    inducing_points: int = 0
+    """k > 0: each encoder block's agents attend through k learned vectors instead of to each
+    other (the Set Transformer's induced set attention, `cmat.networks.layers.EncoderBlock`), so
+    the encoder's time, not only its memory, grows linearly in the number of agents; still
+    equivariant in the agents, so CMAT stays order independent. A different network (k more
+    parameters per block and a second attention): fixed for a run. 0 (the default, and the
+    paper's encoder): full self-attention over agents. A departure from the paper for teams
+    large enough that n² scores dominate a step (docs/dispatch.md, "Fleets of 1,000")."""
+
+    network_options: ClassVar[tuple[str, ...]] = ("inducing_points",)
 
     def checks(self, section: str, config: TrainConfig) -> list[tuple[bool, str]]:
         return [*super().checks(section, config),
                 (self.attention_block >= 0,
-                 f"{section}.attention_block must be >= 0, got {self.attention_block}")]
+                 f"{section}.attention_block must be >= 0, got {self.attention_block}"),
+                (self.inducing_points >= 0,
+                 f"{section}.inducing_points must be >= 0, got {self.inducing_points}")]
 
 
 @dataclass(frozen=True)

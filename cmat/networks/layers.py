@@ -153,18 +153,37 @@ class FeedForward(nn.Module):
 
 
 class EncoderBlock(nn.Module):
-    """Bidirectional self-attention over agents; no positional information, so equivariant."""
+    """Bidirectional self-attention over agents; no positional information, so equivariant.
+
+    With `inducing_points` k > 0 the agents attend through k learned vectors instead of to each
+    other: the induced set attention block of the Set Transformer (Lee et al., 2019, ISAB),
+    H = MAB(I, X) = LN(A + FF(A)), A = LN(I + Attention(I, X)), then each agent attends to H.
+    H is invariant to the agents' order and each agent's output depends on its own input and H,
+    so the block stays equivariant, in time and memory linear in the number of agents n
+    (k·n scores per head and sample instead of n²)."""
 
     n_embd: int
     n_head: int
     gain: float = SMALL_GAIN
     query_block: int = 0
-    """`NetworkConfig.attention_block`: agents per block of the self-attention (0: all)."""
+    """`EncoderOptions.attention_block`: agents per block of the self-attention (0: all)."""
+    inducing_points: int = 0
+    """`EncoderOptions.inducing_points`: k learned vectors the agents attend through (0: the
+    agents attend to each other)."""
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         attention = MultiHeadAttention(self.n_embd, self.n_head, self.gain)
-        x = nn.LayerNorm()(x + attention(x, x, query_block=self.query_block))
+        if self.inducing_points:
+            inducing = self.param("inducing", nn.initializers.xavier_uniform(),
+                                  (self.inducing_points, self.n_embd))
+            queries = jnp.broadcast_to(inducing, (*x.shape[:-2], *inducing.shape))
+            pooled = MultiHeadAttention(self.n_embd, self.n_head, self.gain)(queries, x)
+            pooled = nn.LayerNorm()(queries + pooled)
+            memory = nn.LayerNorm()(pooled + FeedForward(self.n_embd, self.gain)(pooled))
+        else:
+            memory = x
+        x = nn.LayerNorm()(x + attention(x, memory, query_block=self.query_block))
         out: jax.Array = nn.LayerNorm()(x + FeedForward(self.n_embd, self.gain)(x))
         return out
 
@@ -177,14 +196,18 @@ class ObservationEncoder(nn.Module):
     n_block: int
     gain: float = SMALL_GAIN
     query_block: int = 0
-    """`NetworkConfig.attention_block`: agents per block of each self-attention (0: all)."""
+    """`EncoderOptions.attention_block`: agents per block of each self-attention (0: all)."""
+    inducing_points: int = 0
+    """`EncoderOptions.inducing_points`: each block's agents attend through this many learned
+    vectors (`EncoderBlock`; 0: to each other, the paper's encoder)."""
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
         x = nn.gelu(dense(self.n_embd)(nn.LayerNorm()(obs)))
         x = nn.LayerNorm()(x)
         for _ in range(self.n_block):
-            x = EncoderBlock(self.n_embd, self.n_head, self.gain, self.query_block)(x)
+            x = EncoderBlock(self.n_embd, self.n_head, self.gain, self.query_block,
+                             self.inducing_points)(x)
         return x
 
 

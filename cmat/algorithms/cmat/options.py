@@ -36,7 +36,8 @@ class CompressorOptions(EncoderOptions):
     """h, the number of soft mixtures each compressor forms (eq. critic_compressor); the paper
     does not give it."""
 
-    network_options: ClassVar[tuple[str, ...]] = ("compressor_heads",)
+    network_options: ClassVar[tuple[str, ...]] = (*EncoderOptions.network_options,
+                                                  "compressor_heads")
 
     def checks(self, section: str, config: TrainConfig) -> list[tuple[bool, str]]:
         return [*super().checks(section, config),
@@ -74,8 +75,8 @@ class CMATOptions(CompressorOptions, JointRatioOptions):
     """Stochastic consensus only: weight of the consensus policy's entropy bonus."""
 
     network_options: ClassVar[tuple[str, ...]] = (
-        "compressor_heads", "consensus_iterations", "consensus_source", "consensus_policy",
-        "consensus_codes", "latent_head_gain")
+        *CompressorOptions.network_options, "consensus_iterations", "consensus_source",
+        "consensus_policy", "consensus_codes", "latent_head_gain")
 
     def checks(self, section: str, config: TrainConfig) -> list[tuple[bool, str]]:
         return [

@@ -68,7 +68,7 @@ class MAT(PPOAlgorithm):
     ) -> MAT:
         own = options_of(options, MATOptions)
         network = MATNetwork(config, spec.num_agents, spec.action_dim, spec.discrete,
-                             own.attention_block)
+                             own.attention_block, own.inducing_points)
         return cls(network, own.per_agent_gae)
 
     @property

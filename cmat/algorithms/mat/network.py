@@ -148,12 +148,14 @@ class MATNetwork(nn.Module):
     discrete: bool
     attention_block: int = 0
     """`EncoderOptions.attention_block`: agents per block of the encoder's attention."""
+    inducing_points: int = 0
+    """`EncoderOptions.inducing_points`: learned vectors the encoder's agents attend through."""
 
     def setup(self) -> None:
         cfg = self.config
         gain = cfg.init_gain
         self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain,
-                                          self.attention_block)
+                                          self.attention_block, self.inducing_points)
         self.value_head = AgentValueHead(cfg.n_embd, gain)
         self.action_embedding = dense(cfg.n_embd, use_bias=not self.discrete)
         self.token_norm = nn.LayerNorm()

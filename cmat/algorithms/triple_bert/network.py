@@ -42,7 +42,7 @@ class TripleBERTNetwork(nn.Module):
         cfg, own = self.config, self.options
         gain = cfg.init_gain
         self.encoder = ObservationEncoder(cfg.n_embd, cfg.n_head, cfg.n_block, gain,
-                                          own.attention_block)
+                                          own.attention_block, own.inducing_points)
         self.critic_compressor = Compressor(cfg.n_embd, own.compressor_heads, cfg.n_embd, gain)
         self.critic_mlp = ValueHead(cfg.n_embd, gain)
         self.actor_mlp = ActionHead(
