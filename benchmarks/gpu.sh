@@ -30,11 +30,12 @@
 #       its table and PNG if the step ends in time);
 #   throughput_3s5z_vs_3s6z_small  3s5z_vs_3s6z at 1,024 environments;
 #   fleet                          decision latency of dispatch fleets of 100 and 1,000 vehicles:
-#       CMAT at m = 2 (cmat's large-team rule) and m = 5 (the dispatch suite's), MAT, Sable and
-#       MAPPO, batches of 1 and 64 teams (benchmarks/decision_latency.py, into OUT/fleet/;
+#       CMAT at m = 2 (cmat's large-team rule; also with 16 inducing points, `k=16`) and m = 5
+#       (the dispatch suite's), MAT, Sable and MAPPO, batches of 1 and 64 teams (benchmarks/decision_latency.py, into OUT/fleet/;
 #       timed only, in phase 2);
 #   fleet_scaling                  training on dispatch fleets of 100, 250, 500 and 1,000
-#       vehicles: CMAT at m = 2, MAT, MAPPO and the environment alone, at 256 environments
+#       vehicles: CMAT at m = 2 (full attention and k = 16), MAT, MAPPO and the environment
+#       alone, at 256 environments
 #       (benchmarks/agent_scaling.py, into OUT/fleet_scaling/; MAT's points past its compile
 #       limit are reported as such);
 #   tests                          the core properties on the GPU: agent permutation, action
@@ -97,13 +98,15 @@ fleet() {
   local fleet_list
   read -ra fleet_list <<< "$fleets"
   "$PY" benchmarks/decision_latency.py --out "$out/fleet" --teams "${fleet_list[@]}" \
-    --lines "cmat m=2" "cmat m=5" mat sable mappo --batches 1 64 --calls 20 --timeout 60
+    --lines "cmat m=2" "cmat m=2 k=16" "cmat m=5" mat sable mappo --batches 1 64 --calls 20 \
+    --timeout 60
 }
 fleet_scaling() {
   local size team_list=()
   for size in $fleet_teams; do team_list+=("dispatch:grid-$size-mid"); done
   "$PY" benchmarks/agent_scaling.py --out "$out/fleet_scaling" --teams "${team_list[@]}" \
-    --envs "$scaling_envs" --updates 1 --lines "cmat m=2" mat mappo "env only" \
+    --envs "$scaling_envs" --updates 1 \
+    --lines "cmat m=2" "cmat m=2 k=16" mat mappo "env only" \
     --point-timeout 120 ${COMPILE_ONLY:+--compile-only}
 }
 tests() {

@@ -185,10 +185,13 @@ def test_scanned_consensus_iterations_equal_unrolled_ones(iterations: int) -> No
 
 
 @pytest.mark.unit
-def test_a_scanned_decoder_keeps_order_independence() -> None:
-    """m above SCAN_ITERATIONS: permuting the agents permutes the policies and keeps the
-    value and the consensus."""
-    algorithm, params, obs, mask = build(True, consensus_iterations=SCAN_ITERATIONS + 3)
+@pytest.mark.parametrize("options", [{"consensus_iterations": SCAN_ITERATIONS + 3},
+                                     {"inducing_points": 3}], ids=["scanned", "inducing"])
+def test_large_team_settings_keep_order_independence(options: dict[str, int]) -> None:
+    """m above SCAN_ITERATIONS (a scanned decoder), and agents attending through learned
+    vectors: permuting the agents permutes the policies and keeps the value and the
+    consensus."""
+    algorithm, params, obs, mask = build(True, **options)
     permutation = np.array([3, 0, 4, 1, 2])
     apply = jax.jit(algorithm.network.apply)
     original, permuted = apply(params, obs, mask), apply(params, obs[:, permutation],
@@ -200,24 +203,13 @@ def test_a_scanned_decoder_keeps_order_independence() -> None:
 
 
 @pytest.mark.unit
-def test_inducing_points_keep_order_independence() -> None:
-    """Agents attending through learned vectors: permuting the agents permutes the policies
-    and keeps the value and the consensus; the network has the inducing vectors as
-    parameters and computes something else than full attention."""
-    algorithm, params, obs, mask = build(True, inducing_points=3)
-    permutation = np.array([3, 0, 4, 1, 2])
-    apply = jax.jit(algorithm.network.apply)
-    original, permuted = apply(params, obs, mask), apply(params, obs[:, permutation],
-                                                         mask[:, permutation])
-    np.testing.assert_allclose(permuted.value, original.value, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(permuted.consensus, original.consensus, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(permuted.action_params, original.action_params[:, permutation],
-                               rtol=1e-5, atol=1e-5)
-    shapes = {jax.tree_util.keystr(path): leaf.shape
-              for path, leaf in jax.tree_util.tree_leaves_with_path(params)}
-    assert [shape for path, shape in shapes.items() if "inducing" in path] == [(3, 32)]
-    assert not any("inducing" in path for path, _ in jax.tree_util.tree_leaves_with_path(
-        build(True)[1]))
+def test_inducing_points_are_parameters_of_each_encoder_block() -> None:
+    def inducing(params: object) -> list[tuple[int, ...]]:
+        return [leaf.shape for path, leaf in jax.tree_util.tree_leaves_with_path(params)
+                if "inducing" in jax.tree_util.keystr(path)]
+
+    assert inducing(build(True, inducing_points=3)[1]) == [(3, 32)]
+    assert inducing(build(True)[1]) == []
 
 
 @pytest.mark.unit
