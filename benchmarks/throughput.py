@@ -13,7 +13,7 @@ training steps/s (collect, target values, GAE, PPO epochs), and the update's ach
 beside a large matmul's FLOP/s measured in the same process. The update's FLOPs are XLA's cost
 analysis of one compiled gradient step times epochs × minibatches: exact up to m = 16
 consensus iterations, which are unrolled; above, the iterations are one scan
-(`cmat.algorithms.cmat.network.SCAN_ITERATIONS`), whose body the cost analysis may count once,
+(`cmat.networks.layers.SCAN_LENGTH`), whose body the cost analysis may count once,
 so the FLOP/s figure is a lower bound there. Everything is timed after
 compilation, fastest of `--repeats` runs. Env-only and collection runs alternate, so a change in
 the shared machine's load hits both; besides the ratio of the fastest runs, the table gives the

@@ -21,6 +21,7 @@ from cmat.algorithms.pmat.options import PMATOptions
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import action_distribution
+from cmat.networks.layers import SCAN_LENGTH
 from cmat.resolve import load_config
 from cmat.runners.trainer import JaxTrainer
 
@@ -50,25 +51,28 @@ class Team(NamedTuple):
     batch: Batch
 
 
-def acted_team(algorithm: MAT | PMAT, discrete: bool = True, seed: int = 0) -> Team:
+def acted_team(
+    algorithm: MAT | PMAT, discrete: bool = True, seed: int = 0, agents: int = AGENTS,
+    teams: int = TEAMS,
+) -> Team:
     obs_key, mask_key, init_key, act_key, adv_key = jax.random.split(jax.random.PRNGKey(seed), 5)
-    obs = jax.random.normal(obs_key, (TEAMS, AGENTS, OBS_DIM))
-    mask = jax.random.bernoulli(mask_key, 0.5 if discrete else 1.0, (TEAMS, AGENTS, ACTIONS))
+    obs = jax.random.normal(obs_key, (teams, agents, OBS_DIM))
+    mask = jax.random.bernoulli(mask_key, 0.5 if discrete else 1.0, (teams, agents, ACTIONS))
     mask = mask.at[..., 0].set(True)
     params = jitted(algorithm.init)(init_key, obs[0], mask[0])
     acted = jax.vmap(jitted(algorithm.act), in_axes=(None, 0, 0, 0))(
-        params, obs, mask, jax.random.split(act_key, TEAMS)
+        params, obs, mask, jax.random.split(act_key, teams)
     )
     batch = Batch(
         obs=obs, action_mask=mask, actions=acted.actions, log_probs=acted.log_probs,
-        values=acted.value, advantages=jax.random.normal(adv_key, (TEAMS,)),
+        values=acted.value, advantages=jax.random.normal(adv_key, (teams,)),
         targets=acted.value, extras=acted.extras,
     )
     return Team(algorithm, params, batch)
 
 
-def spec(discrete: bool = True) -> EnvSpec:
-    return EnvSpec("test", AGENTS, OBS_DIM, ACTIONS, discrete, 10, False)
+def spec(discrete: bool = True, agents: int = AGENTS) -> EnvSpec:
+    return EnvSpec("test", agents, OBS_DIM, ACTIONS, discrete, 10, False)
 
 
 @pytest.fixture(scope="module")
@@ -129,6 +133,29 @@ def test_mat_teacher_forcing_equals_autoregressive_sampling(mat_team: Team) -> N
     assert float(metrics["clip_frac"]) == 0.0
     mean_advantage = float(jnp.mean(batch.advantages))
     assert float(metrics["policy_loss"]) == pytest.approx(-mean_advantage, abs=1e-5)
+
+
+@pytest.mark.parametrize("algorithm_class", [MAT, PMAT], ids=["mat", "pmat"])
+def test_scanned_decoding_of_a_large_team_equals_teacher_forcing(
+    algorithm_class: type[MAT] | type[PMAT],
+) -> None:
+    """Above SCAN_LENGTH agents acting is one scanned position (a traced k attending to the
+    whole cache, later positions masked): the log-probs of actions sampled along the decision
+    order equal teacher forcing's, and greedy actions are teacher forcing's most likely ones."""
+    agents = SCAN_LENGTH + 3
+    team = acted_team(algorithm_class.build(SHARP, spec(agents=agents)), agents=agents, teams=16)
+    identity = jnp.broadcast_to(jnp.arange(agents), (16, agents))
+    orders = team.batch.extras.order if algorithm_class is PMAT else identity
+    np.testing.assert_allclose(
+        teacher_forced_log_probs(team, orders), team.batch.log_probs, rtol=1e-5, atol=1e-5
+    )
+    if algorithm_class is MAT:
+        algorithm, params, batch = team
+        greedy = jax.vmap(jitted(algorithm.greedy), in_axes=(None, 0, 0))(
+            params, batch.obs, batch.action_mask
+        )
+        output = jitted(algorithm.teacher_forced)(params, batch._replace(actions=greedy), identity)
+        np.testing.assert_array_equal(jnp.argmax(output.action_params, axis=-1), greedy)
 
 
 def test_mat_teacher_forcing_equals_sampling_for_continuous_actions() -> None:

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from cmat.algorithms.cmat.algorithm import CMAT
-from cmat.algorithms.cmat.network import SCAN_ITERATIONS, ConsensusDecoder
+from cmat.algorithms.cmat.network import ConsensusDecoder
 from cmat.algorithms.cmat.options import CMATOptions
 from cmat.config import NetworkConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.networks.heads import SharedInputDense, action_distribution
-from cmat.networks.layers import DecoderBlock, MultiHeadAttention, dense
+from cmat.networks.layers import SCAN_LENGTH, DecoderBlock, MultiHeadAttention, dense
 
 N_AGENTS, OBS_DIM, N_ACTIONS = 5, 7, 6
 
@@ -103,7 +103,10 @@ def test_attention_matches_flax_reference_attention(causal: bool) -> None:
 
 
 @pytest.mark.unit
-def test_decoder_cache_matches_full_causal_pass() -> None:
+@pytest.mark.parametrize("traced", [False, True], ids=["static", "traced"])
+def test_decoder_cache_matches_full_causal_pass(traced: bool) -> None:
+    """Iterating `step` over a cache equals the causal pass, whether the position is a static
+    int (the prefix is read) or an array (the whole cache is read, later positions masked)."""
     block = DecoderBlock(n_embd=16, n_head=2)
     tokens = jax.random.normal(jax.random.PRNGKey(0), (2, 6, 16))
     memory = jax.random.normal(jax.random.PRNGKey(1), (2, 4, 16))
@@ -111,9 +114,11 @@ def test_decoder_cache_matches_full_causal_pass() -> None:
     full = jax.jit(block.apply)(params, tokens, memory)
 
     def iterate(module: DecoderBlock) -> jax.Array:
-        encoded, cache, outputs = module.encode_memory(memory), None, []
+        encoded, outputs = module.encode_memory(memory), []
+        cache = module.empty_cache(tokens[:, 0], tokens.shape[1])
         for k in range(tokens.shape[1]):
-            y, cache = module.step(tokens[:, k : k + 1], cache, encoded, k, tokens.shape[1])
+            position = jnp.asarray(k) if traced else k
+            y, cache = module.step(tokens[:, k : k + 1], cache, encoded, position)
             outputs.append(y[:, 0])
         return jnp.stack(outputs, axis=1)
 
@@ -185,10 +190,10 @@ def test_scanned_consensus_iterations_equal_unrolled_ones(iterations: int) -> No
 
 
 @pytest.mark.unit
-@pytest.mark.parametrize("options", [{"consensus_iterations": SCAN_ITERATIONS + 3},
+@pytest.mark.parametrize("options", [{"consensus_iterations": SCAN_LENGTH + 3},
                                      {"inducing_points": 3}], ids=["scanned", "inducing"])
 def test_large_team_settings_keep_order_independence(options: dict[str, int]) -> None:
-    """m above SCAN_ITERATIONS (a scanned decoder), and agents attending through learned
+    """m above SCAN_LENGTH (a scanned decoder), and agents attending through learned
     vectors: permuting the agents permutes the policies and keeps the value and the
     consensus."""
     algorithm, params, obs, mask = build(True, **options)

@@ -22,6 +22,7 @@ from cmat.cli import main
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.experiments.matrix_games import train_and_count_optimum
+from cmat.networks.layers import SCAN_LENGTH
 from cmat.networks.retention import (
     MultiScaleRetention,
     decay_state,
@@ -147,14 +148,16 @@ def test_multi_scale_retention_module_forms_agree(heads: int) -> None:
     np.testing.assert_allclose(state, whole_state, atol=1e-5)
 
 
-def sable_network(memory: bool, discrete: bool = True) -> tuple[SableNetwork, dict]:
+def sable_network(
+    memory: bool, discrete: bool = True, agents: int = AGENTS
+) -> tuple[SableNetwork, dict]:
     network = SableNetwork(
-        NetworkConfig(n_embd=16, n_head=2, n_block=2), AGENTS, ACTIONS, discrete, memory=memory
+        NetworkConfig(n_embd=16, n_head=2, n_block=2), agents, ACTIONS, discrete, memory=memory
     )
-    obs = jnp.zeros((AGENTS, OBS_DIM))
-    actions = jnp.zeros((AGENTS,), jnp.int32) if discrete else jnp.zeros((AGENTS, ACTIONS))
-    params = jax.jit(network.init)(jax.random.PRNGKey(5), obs, jnp.ones((AGENTS, ACTIONS), bool),
-                                   actions, jnp.arange(AGENTS))
+    obs = jnp.zeros((agents, OBS_DIM))
+    actions = jnp.zeros((agents,), jnp.int32) if discrete else jnp.zeros((agents, ACTIONS))
+    params = jax.jit(network.init)(jax.random.PRNGKey(5), obs, jnp.ones((agents, ACTIONS), bool),
+                                   actions, jnp.arange(agents))
     # SwiGLU starts (and, as in the reference, stays) at zero; random weights here exercise it.
     leaves, tree = jax.tree.flatten(params)
     keys = jax.random.split(jax.random.PRNGKey(6), len(leaves))
@@ -170,13 +173,16 @@ def random_masks(seed: int, *shape: int) -> jax.Array:
     return mask.at[..., 0].set(True)
 
 
-@pytest.mark.parametrize("memory", [False, True])
-def test_acting_step_by_step_equals_the_teacher_forced_sequence(memory: bool) -> None:
+@pytest.mark.parametrize(("memory", "agents"), [(False, AGENTS), (True, AGENTS),
+                                                (True, SCAN_LENGTH + 3)],
+                         ids=["feed-forward", "recurrent", "recurrent-scanned"])
+def test_acting_step_by_step_equals_the_teacher_forced_sequence(memory: bool, agents: int) -> None:
     """Acting agent by agent, timestep by timestep (state decayed, reset at episode starts)
-    gives the log-probs and values the training pass computes for the same actions."""
-    network, params = sable_network(memory)
-    obs = jax.random.normal(jax.random.PRNGKey(7), (STEPS, AGENTS, OBS_DIM))
-    masks = random_masks(8, STEPS, AGENTS)
+    gives the log-probs and values the training pass computes for the same actions; above
+    SCAN_LENGTH agents the agents are one scanned position (`decode_in_order`)."""
+    network, params = sable_network(memory, agents=agents)
+    obs = jax.random.normal(jax.random.PRNGKey(7), (STEPS, agents, OBS_DIM))
+    masks = random_masks(8, STEPS, agents)
     positions = jnp.array([3, 0, 1, 2, 0, 1])
     memory_state = network.apply(params, method="initial_memory")
     memory_state = jax.tree.map(
@@ -187,7 +193,7 @@ def test_acting_step_by_step_equals_the_teacher_forced_sequence(memory: bool) ->
     carried, actions, log_probs, values = memory_state, [], [], []
     for t, key in enumerate(jax.random.split(jax.random.PRNGKey(10), STEPS)):
         acted, log_prob, value, carried = act_step(
-            params, obs[t], masks[t], jnp.arange(AGENTS), key, carried, starts[t], positions[t]
+            params, obs[t], masks[t], jnp.arange(agents), key, carried, starts[t], positions[t]
         )
         actions.append(acted)
         log_probs.append(log_prob)

@@ -8,14 +8,14 @@ into the most likely action. A critic ends with `ValueHead`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from typing import Any
 
 import distrax
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from cmat.networks.layers import HIDDEN_GAIN, SMALL_GAIN, dense
+from cmat.networks.layers import HIDDEN_GAIN, SMALL_GAIN, dense, scan_positions
 
 MASKED_LOGIT = -1e9
 """Logit of an unavailable action: exp underflows to exactly 0 probability in float32."""
@@ -129,34 +129,45 @@ def greedy_action(action_params: jax.Array, discrete: bool) -> jax.Array:
 
 
 def decode_in_order(
-    features_of: Callable[[int, jax.Array], jax.Array],
-    policy_params: Callable[[jax.Array, jax.Array], tuple[jax.Array, jax.Array]],
+    module: nn.Module,
+    context: Any,
+    state: Any,
     action_mask: jax.Array,
     order: jax.Array,
     key: jax.Array | None,
     start: jax.Array,
     discrete: bool,
-) -> tuple[jax.Array, jax.Array]:
-    """Agents act one after another along `order` [n] (MAT's autoregressive decoding, eq. mat):
-    the k-th agent's decoder features come from `features_of(k, previous action)` (the start
-    action for the first), its action parameters from `policy_params(features, its mask)`, and
-    its action is sampled (greedy where `key` is None) and fed to the next. `action_mask`
-    [n, A] is in agent order. Returns actions [n] (or [n, A]) and log-probs [n] in agent order.
-    """
+) -> tuple[jax.Array, jax.Array, Any]:
+    """Agents act one after another along `order` [n] (MAT's autoregressive decoding, eq. mat).
+
+    The k-th agent's decoder features and the decoder's next `state` come from
+    `module.decode_step(context, k, previous action, state)` (the start action for the first),
+    its action parameters from `module.policy_params(features, its mask)`, and its action is
+    sampled (greedy where `key` is None) and fed to the next. Up to `SCAN_LENGTH` agents k is
+    static and the positions unrolled; above, one position is compiled once and scanned
+    (`scan_positions`), so compile time does not grow with the team. `action_mask` [n, A] is in
+    agent order. Returns actions [n] (or [n, A]) and log-probs [n] in agent order, and the
+    decoder's state after the last agent."""
     n = order.shape[0]
-    masks = action_mask[order]
-    keys: list[jax.Array | None] = [None] * n if key is None else list(jax.random.split(key, n))
-    previous = start
-    actions, log_probs = [], []
-    for k in range(n):
-        params, log_std = policy_params(features_of(k, previous), masks[k])
+    keys = None if key is None else jax.random.split(key, n)
+
+    def position(
+        module: nn.Module, carry: tuple[jax.Array, Any], inputs: tuple[Any, Any]
+    ) -> tuple[tuple[jax.Array, Any], tuple[jax.Array, jax.Array]]:
+        previous, state = carry
+        k, (mask, step_key) = inputs
+        features, state = module.decode_step(context, k, previous, state)
+        params, log_std = module.policy_params(features, mask)
         distribution = action_distribution(params, log_std, discrete)
-        if keys[k] is None:
-            previous = greedy_action(params, discrete)
-            log_prob = distribution.log_prob(previous)
+        if step_key is None:
+            action = greedy_action(params, discrete)
+            log_prob = distribution.log_prob(action)
         else:
-            previous, log_prob = distribution.sample_and_log_prob(seed=keys[k])
-        actions.append(previous)
-        log_probs.append(log_prob)
+            action, log_prob = distribution.sample_and_log_prob(seed=step_key)
+        return (action, state), (action, log_prob)
+
+    (_, state), (actions, log_probs) = scan_positions(
+        module, position, (start, state), (action_mask[order], keys), n
+    )
     inverse = jnp.argsort(order)
-    return jnp.stack(actions)[inverse], jnp.stack(log_probs)[inverse]
+    return actions[inverse], log_probs[inverse], state

@@ -6,6 +6,9 @@ post-LayerNorm, as in the reference MAT implementation.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -34,25 +37,43 @@ KeyValues = tuple[jax.Array, jax.Array]
 """Keys and values of attended positions, each [..., heads, L, d/heads] (head-major)."""
 
 
-def extend(cache: KeyValues | None, new: KeyValues, position: int, length: int) -> KeyValues:
-    """A key/value cache of `length` positions (zeros where None) with the one position of
-    `new` written at `position` (static); attention reads positions 0..position of it
-    (`filled`).
+def extend(cache: KeyValues, new: KeyValues, position: int | jax.Array) -> KeyValues:
+    """The cache (`MultiHeadAttention.empty_cache`) with the one position of `new` written at
+    `position`; attention reads positions 0..position of it (`MultiHeadAttention.attend_written`).
 
     One buffer per sequence, written in place, rather than a concatenation per position: the
     unrolled CMAT decoder's gradient compiles and runs faster at large m (docs/speed.md)."""
-    if cache is None:
-        shape = (*new[0].shape[:-2], length, new[0].shape[-1])
-        cache = (jnp.zeros(shape, new[0].dtype), jnp.zeros(shape, new[1].dtype))
     return (
         jax.lax.dynamic_update_slice_in_dim(cache[0], new[0], position, axis=-2),
         jax.lax.dynamic_update_slice_in_dim(cache[1], new[1], position, axis=-2),
     )
 
 
-def filled(cache: KeyValues, position: int) -> KeyValues:
-    """The keys and values of positions 0..position of a cache."""
-    return cache[0][..., : position + 1, :], cache[1][..., : position + 1, :]
+SCAN_LENGTH = 16
+"""Above this many sequential positions a decoder (CMAT's consensus iterations, MAT's and
+Sable's agents) runs one position compiled once and scanned (`scan_positions`), so compile time
+does not grow with the sequence; up to it the positions are unrolled."""
+
+
+def scan_positions(
+    module: nn.Module, step: Callable[..., tuple[Any, Any]], carry: Any, xs: Any, length: int,
+    scan: bool | None = None,
+) -> tuple[Any, Any]:
+    """`step(module, carry, (k, x_k)) -> (carry, y_k)` for k = 0..length-1, x_k the k-th slice
+    of every leaf of `xs` (None for none): a Python loop with a static k up to `SCAN_LENGTH`,
+    else `nn.scan` with a traced k and the parameters shared. Returns the last carry and the
+    y_k stacked on a leading axis. Both compute the same numbers up to float rounding (a traced
+    k attends over whole caches with the unwritten positions masked: `attend_written`).
+    `scan` forces one way or the other."""
+    if (length > SCAN_LENGTH) if scan is None else scan:
+        run = nn.scan(step, variable_broadcast="params", split_rngs={"params": False},
+                      length=length)
+        return run(module, carry, (jnp.arange(length), xs))
+    outputs = []
+    for k in range(length):
+        carry, y = step(module, carry, (k, jax.tree.map(lambda leaf, k=k: leaf[k], xs)))
+        outputs.append(y)
+    return carry, jax.tree.map(lambda *leaves: jnp.stack(leaves), *outputs)
 
 
 class MultiHeadAttention(nn.Module):
@@ -105,6 +126,21 @@ class MultiHeadAttention(nn.Module):
                 logits = jnp.where(mask, logits, jnp.finfo(logits.dtype).min)
             heads = jnp.einsum("...qk,...kd->...qd", jax.nn.softmax(logits, axis=-1), values)
         return self.out(jnp.moveaxis(heads, -3, -2).reshape(*x.shape[:-1], self.n_embd))
+
+    def empty_cache(self, token: jax.Array, length: int) -> KeyValues:
+        """Zero keys and values of `length` positions for tokens like `token` [..., d]."""
+        shape = (*token.shape[:-1], self.n_head, length, self.n_embd // self.n_head)
+        return jnp.zeros(shape, token.dtype), jnp.zeros(shape, token.dtype)
+
+    def attend_written(
+        self, x: jax.Array, cache: KeyValues, position: int | jax.Array
+    ) -> jax.Array:
+        """x attends to positions 0..position of a cache (`extend`): a static position reads
+        that prefix, a traced one (`scan_positions`) the whole cache, later positions masked."""
+        if isinstance(position, int):
+            return self.attend(x, cache[0][..., : position + 1, :],
+                               cache[1][..., : position + 1, :])
+        return self.attend(x, *cache, visible=jnp.arange(cache[0].shape[-2]) <= position)
 
     def __call__(
         self, x: jax.Array, memory: jax.Array, causal: bool = False, query_block: int = 0
@@ -254,39 +290,19 @@ class DecoderBlock(nn.Module):
         self.norms = [nn.LayerNorm() for _ in range(3)]
 
     def step(
-        self,
-        token: jax.Array,
-        cache: KeyValues | None,
-        encoded: KeyValues,
-        position: int,
-        length: int,
+        self, token: jax.Array, cache: KeyValues, encoded: KeyValues, position: int | jax.Array
     ) -> tuple[jax.Array, KeyValues]:
-        """token [..., 1, d] at `position` of a sequence of `length`; cache: keys/values of
-        the earlier tokens (`extend`), None at position 0."""
-        cache = extend(cache, self.self_attention.project_memory(token), position, length)
-        x = self.norms[0](token + self.self_attention.attend(token, *filled(cache, position)))
+        """token [..., 1, d] at `position` (static, or traced under `scan_positions`); cache:
+        keys/values of the sequence (`empty_cache`) with the earlier tokens written."""
+        cache = extend(cache, self.self_attention.project_memory(token), position)
+        x = self.norms[0](token + self.self_attention.attend_written(token, cache, position))
         x = self.norms[1](x + self.cross_attention.attend(x, *encoded))
         x = self.norms[2](x + self.feed_forward(x))
         return x, cache
 
     def empty_cache(self, token: jax.Array, length: int) -> KeyValues:
-        """Zero keys and values of `length` positions for tokens like `token` [..., d]."""
-        shape = (*token.shape[:-1], self.n_head, length, self.n_embd // self.n_head)
-        return jnp.zeros(shape, token.dtype), jnp.zeros(shape, token.dtype)
-
-    def step_at(
-        self, token: jax.Array, cache: KeyValues, encoded: KeyValues, position: jax.Array
-    ) -> tuple[jax.Array, KeyValues]:
-        """`step` at a traced `position`: token [..., 1, d] is written into the cache of every
-        position (`empty_cache`) and attends to positions 0..position, the others masked."""
-        new = self.self_attention.project_memory(token)
-        cache = (jax.lax.dynamic_update_slice_in_dim(cache[0], new[0], position, axis=-2),
-                 jax.lax.dynamic_update_slice_in_dim(cache[1], new[1], position, axis=-2))
-        visible = jnp.arange(cache[0].shape[-2]) <= position
-        x = self.norms[0](token + self.self_attention.attend(token, *cache, visible=visible))
-        x = self.norms[1](x + self.cross_attention.attend(x, *encoded))
-        x = self.norms[2](x + self.feed_forward(x))
-        return x, cache
+        """The self-attention's cache of `length` positions for tokens like `token` [..., d]."""
+        return self.self_attention.empty_cache(token, length)
 
     def encode_memory(self, memory: jax.Array) -> KeyValues:
         """Cross-attention keys/values of the encoder output, computed once for all steps."""

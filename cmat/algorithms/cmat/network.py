@@ -34,6 +34,7 @@ from cmat.networks.layers import (
     KeyValues,
     ObservationEncoder,
     dense,
+    scan_positions,
 )
 
 
@@ -93,21 +94,14 @@ class LatentConsensus(nn.Module):
         return latent
 
 
-SCAN_ITERATIONS = 16
-"""Above this many consensus iterations the decoder runs them as one `lax.scan` step (compile
-time independent of m) instead of unrolling them (`ConsensusDecoder.scan`)."""
-
-
 class ConsensusDecoder(nn.Module):
     """Iterates the consensus: e_k = Decoder([e0..e(k-1)] + pos, Ô) at the last position.
 
     Causal attention makes earlier positions independent of later ones, so a key/value cache is
     exact, and gradients flow through all m iterations (the consensus is deterministic, paper
-    eq. ratio). Up to `SCAN_ITERATIONS` the iterations are unrolled, each attending to the
-    positions written so far; above, one iteration is compiled once and scanned m times
-    (`nn.scan` over this module, so the parameters are the same either way), attending to the
-    whole cache with the positions not yet written masked out, which gives the same numbers up
-    to float rounding (tests/test_cmat_network.py).
+    eq. ratio). Up to `SCAN_LENGTH` iterations they are unrolled, above it one iteration is
+    compiled once and scanned m times (`scan_positions`; the parameters are the same either
+    way), which gives the same numbers up to float rounding (tests/test_network.py).
     """
 
     n_embd: int
@@ -117,7 +111,7 @@ class ConsensusDecoder(nn.Module):
     gain: float = SMALL_GAIN
     scan: bool | None = None
     """Run the iterations as a scan (True) or unrolled (False); None: scan above
-    `SCAN_ITERATIONS`."""
+    `SCAN_LENGTH`."""
 
     def setup(self) -> None:
         self.blocks = [DecoderBlock(self.n_embd, self.n_head, self.gain, name=f"DecoderBlock_{i}")
@@ -131,39 +125,23 @@ class ConsensusDecoder(nn.Module):
         if self.iterations == 0:
             return e0[..., None, :]
         memories = [block.encode_memory(encoded) for block in self.blocks]
-        scan = self.iterations > SCAN_ITERATIONS if self.scan is None else self.scan
-        if scan:
-            return self.scanned(e0, memories)
-        caches: list[KeyValues | None] = [None] * self.n_block
-        sequence = [e0]
-        for k in range(self.iterations):
-            x = (sequence[-1] + self.positions[k])[..., None, :]
-            for layer, block in enumerate(self.blocks):
-                x, caches[layer] = block.step(
-                    x, caches[layer], memories[layer], k, self.iterations
-                )
-            sequence.append(x[..., 0, :])
-        return jnp.stack(sequence, axis=-2)
-
-    def scanned(self, e0: jax.Array, memories: list[KeyValues]) -> jax.Array:
-        """The iterations as one scanned step; the caches start as zeros of `iterations`
-        positions, one per block."""
         caches = [block.empty_cache(e0, self.iterations) for block in self.blocks]
 
         def iteration(
-            module: ConsensusDecoder, carry: tuple[jax.Array, list[KeyValues]], k: jax.Array
+            module: ConsensusDecoder, carry: tuple[jax.Array, list[KeyValues]],
+            position: tuple[int | jax.Array, None],
         ) -> tuple[tuple[jax.Array, list[KeyValues]], jax.Array]:
             previous, caches = carry
+            k = position[0]
             x = (previous + module.positions[k])[..., None, :]
             written = []
             for layer, block in enumerate(module.blocks):
-                x, cache = block.step_at(x, caches[layer], memories[layer], k)
+                x, cache = block.step(x, caches[layer], memories[layer], k)
                 written.append(cache)
             return (x[..., 0, :], written), x[..., 0, :]
 
-        run = nn.scan(iteration, variable_broadcast="params", split_rngs={"params": False},
-                      length=self.iterations)
-        _, sequence = run(self, (e0, caches), jnp.arange(self.iterations))
+        _, sequence = scan_positions(self, iteration, (e0, caches), None, self.iterations,
+                                     self.scan)
         return jnp.concatenate([e0[..., None, :], jnp.moveaxis(sequence, 0, -2)], axis=-2)
 
 

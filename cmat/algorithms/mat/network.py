@@ -38,7 +38,6 @@ from cmat.networks.layers import (
     ObservationEncoder,
     dense,
     extend,
-    filled,
 )
 
 
@@ -80,18 +79,20 @@ class MATDecodeBlock(nn.Module):
         self.norms = [nn.LayerNorm() for _ in range(3)]
 
     def step(
-        self, token: jax.Array, agent: jax.Array, cache: BlockCache | None, position: int,
-        length: int,
+        self, token: jax.Array, agent: jax.Array, cache: BlockCache, position: int | jax.Array
     ) -> tuple[jax.Array, BlockCache]:
-        """One position of `length`: token and agent [1, d], given the cache of the positions
-        before it (None at position 0)."""
-        token_kv = extend(None if cache is None else cache.tokens,
-                          self.token_attention.project_memory(token), position, length)
-        x = self.norms[0](token + self.token_attention.attend(token, *filled(token_kv, position)))
-        feature_kv = extend(None if cache is None else cache.features,
-                            self.agent_attention.project_memory(x), position, length)
-        y = self.norms[1](agent + self.agent_attention.attend(agent, *filled(feature_kv, position)))
+        """One position: token and agent [1, d], given the cache (`empty_cache`) with the
+        positions before it written; `position` static, or traced under `scan_positions`."""
+        token_kv = extend(cache.tokens, self.token_attention.project_memory(token), position)
+        x = self.norms[0](token + self.token_attention.attend_written(token, token_kv, position))
+        feature_kv = extend(cache.features, self.agent_attention.project_memory(x), position)
+        y = self.norms[1](agent + self.agent_attention.attend_written(agent, feature_kv, position))
         return self.norms[2](y + self.feed_forward(y)), BlockCache(token_kv, feature_kv)
+
+    def empty_cache(self, token: jax.Array, length: int) -> BlockCache:
+        """Both attentions' caches of `length` positions for one token like `token` [d]."""
+        return BlockCache(self.token_attention.empty_cache(token, length),
+                          self.agent_attention.empty_cache(token, length))
 
     def __call__(self, tokens: jax.Array, agents: jax.Array) -> jax.Array:
         """All positions at once (causal masks); equals iterating `step`."""
@@ -191,17 +192,25 @@ class MATNetwork(nn.Module):
     ) -> tuple[jax.Array, jax.Array]:
         """Acts agent by agent along `order`, feeding each action back (sampled, or the most
         likely one when `key` is None). Returns actions and their log-probs in agent order."""
-        agents, n = encoded[order], self.num_agents
-        caches: list[BlockCache | None] = [None] * len(self.blocks)
+        token = jnp.zeros((self.config.n_embd,), encoded.dtype)
+        caches = [block.empty_cache(token, self.num_agents) for block in self.blocks]
+        actions, log_probs, _ = decode_in_order(self, encoded[order], caches, action_mask, order,
+                                                key, self.start_action(), self.discrete)
+        return actions, log_probs
 
-        def features_of(k: int, previous: jax.Array) -> jax.Array:
-            x = self.embed(previous[None])
-            for layer, block in enumerate(self.blocks):
-                x, caches[layer] = block.step(x, agents[k : k + 1], caches[layer], k, n)
-            return x[0]
-
-        return decode_in_order(features_of, self.policy_params, action_mask, order, key,
-                               self.start_action(), self.discrete)
+    def decode_step(
+        self, agents: jax.Array, k: int | jax.Array, previous: jax.Array,
+        caches: list[BlockCache],
+    ) -> tuple[jax.Array, list[BlockCache]]:
+        """The decoder features [d] of position k, whose agent's encoding is agents[k] (agents
+        [n, d] in decision order), given the previous position's action."""
+        x = self.embed(previous[None])
+        agent = jax.lax.dynamic_slice_in_dim(agents, k, 1)
+        written = []
+        for block, cache in zip(self.blocks, caches, strict=True):
+            x, cache = block.step(x, agent, cache, k)
+            written.append(cache)
+        return x[0], written
 
     def __call__(
         self, obs: jax.Array, action_mask: jax.Array, actions: jax.Array, order: jax.Array

@@ -354,18 +354,26 @@ class SableNetwork(nn.Module):
         back (sampled, or the most likely one when `key` is None), from the decoder blocks'
         (token, cross) `states`. Returns actions and log-probs [n] in agent order and the
         states after the last agent."""
-        states = list(states)
-        agents = encoded[order]
-
-        def features_of(k: int, previous: jax.Array) -> jax.Array:
-            x = self.embed_actions(previous[None])
-            for layer, block in enumerate(self.decoder_blocks):
-                x, states[layer] = block.step(x, agents[k : k + 1], states[layer], position)
-            return x[0]
-
-        actions, log_probs = decode_in_order(features_of, self.policy_params, action_mask, order,
-                                             key, self.start_action(), self.discrete)
+        actions, log_probs, states = decode_in_order(
+            self, (encoded[order], position), states, action_mask, order, key,
+            self.start_action(), self.discrete,
+        )
         return actions, log_probs, states
+
+    def decode_step(
+        self, context: tuple[jax.Array, jax.Array], k: int | jax.Array, previous: jax.Array,
+        states: list[tuple[jax.Array, jax.Array]],
+    ) -> tuple[jax.Array, list[tuple[jax.Array, jax.Array]]]:
+        """The decoder features [d] of the k-th agent to act, context = (encodings [n, d] in
+        decision order, the timestep's position), given the previous agent's action and the
+        decoder blocks' (token, cross) states after it."""
+        agents, position = context
+        x = self.embed_actions(previous[None])
+        written = []
+        for block, state in zip(self.decoder_blocks, states, strict=True):
+            x, state = block.step(x, jax.lax.dynamic_slice_in_dim(agents, k, 1), state, position)
+            written.append(state)
+        return x[0], written
 
     def one_step(self) -> tuple[jax.Array, jax.Array]:
         """starts and positions of a lone timestep: [True] and [0]."""
