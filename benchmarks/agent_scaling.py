@@ -1,4 +1,5 @@
-"""Training steps/s and peak memory as the team grows: CMAT (m = n, and m fixed), MAT, MAPPO.
+"""Training steps/s and peak memory as the team grows: CMAT (m = n, and m fixed), MAT, Sable,
+MAPPO.
 
     python benchmarks/agent_scaling.py --out DIR [--teams 3m 8m 25m 27m_vs_30m 50m 100m]
         [--lines cmat mat ...] [--envs 8] [--rollout 25] [--updates 2] [--repeats 1]
@@ -14,7 +15,8 @@ reports its peak memory: the accelerator allocator's peak on a GPU, else the pro
 resident memory (which includes compilation). CMAT's decoder runs m
 iterations: the 'cmat' line sets the paper's m = n (cmat's own default fixes m for teams above
 32 agents, `cmat.algorithms.cmat.options.LARGE_TEAM`, to m = 2, the 'cmat m=2' line); the
-'cmat m=4' line fixes m = 4 to show what the knob buys.
+'cmat m=4' line fixes m = 4 to show what the knob buys. `k=16`: the encoder's agents attend
+through 16 inducing points (`inducing_points`); 'sable' is the recurrent Sable.
 
 Growth with the team: for each line, the exponent b of time per env step ∝ n^b is the
 least-squares slope of log(1 / steps/s) on log n over the line's points, and for every other
@@ -56,6 +58,8 @@ LINES = {
                                  "cmat.attention_block=128"]),
     "cmat m=2 k=16": ("cmat", ["cmat.consensus_iterations=2", "cmat.inducing_points=16"]),
     "mat": ("mat", []),
+    "mat k=16": ("mat", ["mat.inducing_points=16"]),
+    "sable": ("sable", []),
     "mappo": ("mappo", []),
     "env only": ("env", []),
 }
@@ -199,7 +203,7 @@ def main() -> None:
                 point["run"], point["machine"] = run, machine
             results.setdefault(line, {})[team] = point
             shown = point if isinstance(point, str) else (
-                f"n={point['n']:.0f} {point['sps']:.0f} steps/s {memory_mb(point):.0f} MB")
+                f"n={point['n']:.0f} {rate(point['sps'])} steps/s {memory_mb(point):.0f} MB")
             print(f"{team:12} {line:10} {shown}", flush=True)
             (args.out / "agent_scaling.json").write_text(json.dumps(results, indent=1))
     if not args.compile_only:
@@ -257,6 +261,11 @@ def exponents(results: dict[str, Points], lines: list[str]) -> list[str]:
     return text
 
 
+def rate(steps_per_second: float) -> str:
+    """Steps/s for a table: whole numbers from 10 up, two significant digits below."""
+    return f"{steps_per_second:.0f}" if steps_per_second >= 10 else f"{steps_per_second:.2g}"
+
+
 def memory_mb(point: dict[str, Any]) -> float:
     """The accelerator allocator's peak where the point ran on one, else peak resident memory."""
     return float(point.get("device_peak_mb") or point["peak_mb"])
@@ -285,7 +294,7 @@ def write(results: dict[str, Points], args: argparse.Namespace) -> None:
         points = [results[line].get(team, "not run") for line in lines]
         ns = [p["n"] for p in points if not isinstance(p, str)]
         cells = [p if isinstance(p, str) else
-                 f"{p['sps']:.0f} / {memory_mb(p):.0f}"
+                 f"{rate(p['sps'])} / {memory_mb(p):.0f}"
                  + (f" / {p['compile_s']:.0f}" if "compile_s" in p else "") for p in points]
         rows.append(f"| {team} | {ns[0]:.0f} | " if ns else f"| {team} | ? | ")
         runs = sorted({str(p.get("run", "?")) for p in points if isinstance(p, dict)})

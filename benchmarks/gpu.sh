@@ -34,10 +34,9 @@
 #       (the dispatch suite's), MAT, Sable and MAPPO, batches of 1 and 64 teams (benchmarks/decision_latency.py, into OUT/fleet/;
 #       timed only, in phase 2);
 #   fleet_scaling                  training on dispatch fleets of 100, 250, 500 and 1,000
-#       vehicles: CMAT at m = 2 (full attention and k = 16), MAT, MAPPO and the environment
-#       alone, at 256 environments
-#       (benchmarks/agent_scaling.py, into OUT/fleet_scaling/; MAT's points past its compile
-#       limit are reported as such);
+#       vehicles: CMAT at m = 2 (full attention and k = 16), MAT, Sable, MAPPO and the
+#       environment alone, at 256 environments (benchmarks/agent_scaling.py, into
+#       OUT/fleet_scaling/; points past their time limit are reported as such);
 #   tests                          the core properties on the GPU: agent permutation, action
 #       masks, chunked gradients, the paper's loss with the joint ratio (phase 1 only).
 # GPU_STEPS="NAME ..." runs the named steps alone. GPU_QUICK=1 runs the same steps at CPU sizes:
@@ -106,7 +105,7 @@ fleet_scaling() {
   for size in $fleet_teams; do team_list+=("dispatch:grid-$size-mid"); done
   "$PY" benchmarks/agent_scaling.py --out "$out/fleet_scaling" --teams "${team_list[@]}" \
     --envs "$scaling_envs" --updates 1 \
-    --lines "cmat m=2" "cmat m=2 k=16" mat mappo "env only" \
+    --lines "cmat m=2" "cmat m=2 k=16" mat sable mappo "env only" \
     --point-timeout 120 ${COMPILE_ONLY:+--compile-only}
 }
 tests() {
