@@ -39,7 +39,7 @@ KeyValues = tuple[jax.Array, jax.Array]
 
 def extend(cache: KeyValues, new: KeyValues, position: int | jax.Array) -> KeyValues:
     """The cache (`MultiHeadAttention.empty_cache`) with the one position of `new` written at
-    `position`; attention reads positions 0..position of it (`MultiHeadAttention.attend_written`).
+    `position`.
 
     One buffer per sequence, written in place, rather than a concatenation per position: the
     unrolled CMAT decoder's gradient compiles and runs faster at large m (docs/speed.md)."""
@@ -132,15 +132,34 @@ class MultiHeadAttention(nn.Module):
         shape = (*token.shape[:-1], self.n_head, length, self.n_embd // self.n_head)
         return jnp.zeros(shape, token.dtype), jnp.zeros(shape, token.dtype)
 
-    def attend_written(
-        self, x: jax.Array, cache: KeyValues, position: int | jax.Array
-    ) -> jax.Array:
-        """x attends to positions 0..position of a cache (`extend`): a static position reads
-        that prefix, a traced one (`scan_positions`) the whole cache, later positions masked."""
+    def attend_and_write(
+        self, x: jax.Array, memory: jax.Array, cache: KeyValues, position: int | jax.Array
+    ) -> tuple[jax.Array, KeyValues]:
+        """x [..., 1, d] attends to positions 0..position-1 of a cache (`empty_cache`) and to
+        `memory` [..., 1, d] at `position`; returns the output and the cache with `memory`'s
+        keys and values written there (`extend`).
+
+        A static position reads the written prefix. A traced one (`scan_positions`) reads the
+        whole cache before writing to it, the positions from `position` on masked, and joins
+        the new position's score in the softmax: the same numbers up to rounding, and the
+        write no longer follows a read of the written buffer, so XLA's CPU backend updates the
+        carried cache in place instead of copying it at every position (docs/speed.md)."""
+        new = self.project_memory(memory)
         if isinstance(position, int):
+            cache = extend(cache, new, position)
             return self.attend(x, cache[0][..., : position + 1, :],
-                               cache[1][..., : position + 1, :])
-        return self.attend(x, *cache, visible=jnp.arange(cache[0].shape[-2]) <= position)
+                               cache[1][..., : position + 1, :]), cache
+        queries = self.split_heads(self.query(x)) / np.sqrt(self.n_embd // self.n_head)
+        earlier = jnp.einsum("...qd,...kd->...qk", queries, cache[0])
+        earlier = jnp.where(jnp.arange(cache[0].shape[-2]) < position, earlier,
+                            jnp.finfo(earlier.dtype).min)
+        own = jnp.einsum("...qd,...kd->...qk", queries, new[0])
+        top = jnp.maximum(earlier.max(axis=-1, keepdims=True), own)
+        earlier, own = jnp.exp(earlier - top), jnp.exp(own - top)
+        heads = (jnp.einsum("...qk,...kd->...qd", earlier, cache[1]) + own * new[1]) / (
+            earlier.sum(axis=-1, keepdims=True) + own)
+        out = self.out(jnp.moveaxis(heads, -3, -2).reshape(*x.shape[:-1], self.n_embd))
+        return out, extend(cache, new, position)
 
     def __call__(
         self, x: jax.Array, memory: jax.Array, causal: bool = False, query_block: int = 0
@@ -294,8 +313,8 @@ class DecoderBlock(nn.Module):
     ) -> tuple[jax.Array, KeyValues]:
         """token [..., 1, d] at `position` (static, or traced under `scan_positions`); cache:
         keys/values of the sequence (`empty_cache`) with the earlier tokens written."""
-        cache = extend(cache, self.self_attention.project_memory(token), position)
-        x = self.norms[0](token + self.self_attention.attend_written(token, cache, position))
+        attended, cache = self.self_attention.attend_and_write(token, token, cache, position)
+        x = self.norms[0](token + attended)
         x = self.norms[1](x + self.cross_attention.attend(x, *encoded))
         x = self.norms[2](x + self.feed_forward(x))
         return x, cache

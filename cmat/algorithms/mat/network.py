@@ -37,7 +37,6 @@ from cmat.networks.layers import (
     MultiHeadAttention,
     ObservationEncoder,
     dense,
-    extend,
 )
 
 
@@ -83,10 +82,12 @@ class MATDecodeBlock(nn.Module):
     ) -> tuple[jax.Array, BlockCache]:
         """One position: token and agent [1, d], given the cache (`empty_cache`) with the
         positions before it written; `position` static, or traced under `scan_positions`."""
-        token_kv = extend(cache.tokens, self.token_attention.project_memory(token), position)
-        x = self.norms[0](token + self.token_attention.attend_written(token, token_kv, position))
-        feature_kv = extend(cache.features, self.agent_attention.project_memory(x), position)
-        y = self.norms[1](agent + self.agent_attention.attend_written(agent, feature_kv, position))
+        attended, token_kv = self.token_attention.attend_and_write(token, token, cache.tokens,
+                                                                   position)
+        x = self.norms[0](token + attended)
+        attended, feature_kv = self.agent_attention.attend_and_write(agent, x, cache.features,
+                                                                     position)
+        y = self.norms[1](agent + attended)
         return self.norms[2](y + self.feed_forward(y)), BlockCache(token_kv, feature_kv)
 
     def empty_cache(self, token: jax.Array, length: int) -> BlockCache:
