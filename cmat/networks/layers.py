@@ -63,8 +63,8 @@ def scan_positions(
     of every leaf of `xs` (None for none): a Python loop with a static k up to `SCAN_LENGTH`,
     else `nn.scan` with a traced k and the parameters shared. Returns the last carry and the
     y_k stacked on a leading axis. Both compute the same numbers up to float rounding (a traced
-    k attends over whole caches with the unwritten positions masked: `attend_written`).
-    `scan` forces one way or the other."""
+    k attends over whole caches with the unwritten positions masked:
+    `MultiHeadAttention.attend_and_write`). `scan` forces one way or the other."""
     if (length > SCAN_LENGTH) if scan is None else scan:
         run = nn.scan(step, variable_broadcast="params", split_rngs={"params": False},
                       length=length)
