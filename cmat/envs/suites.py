@@ -61,7 +61,7 @@ averages, are 32 envs here; agent ids on (`add_agent_id: True`)."""
 
 DISPATCH_SETTINGS: dict[str, Any] = {
     "rollout_length": 30, "num_envs": 4, "total_steps": 200_000, "eval_episodes": 8,
-    "eval_actions": "sample", "cmat": {"consensus_iterations": 5},
+    "eval_actions": "sample", "cmat": {"consensus_iterations": 5}, "sable": {"retention_chunk": 1},
     "ppo": {"lr": 5e-4, "adam_eps": 1e-5, "epochs": 5, "num_minibatches": 1, "clip_eps": 0.2,
             "ent_coef": 0.01, "max_grad_norm": 10.0},
 }
@@ -74,7 +74,13 @@ was at 13–22 after 48k. The budget is per seed in environment steps (fleet min
 Evaluation samples the policy: greedy decoding sends every vehicle with the same observation to
 the same choice, and on grid-100-mid after 24k steps (3 seeds × 16 episodes) it swung between
 seeds and checkpoints (CMAT 16.4–21.7, MAPPO 9.0–23.3; service rate 52–96 %) where sampling
-held CMAT at 19.0–22.4 and MAPPO at 20.2–21.4 (service rate 96–98 %)."""
+held CMAT at 19.0–22.4 and MAPPO at 20.2–21.4 (service rate 96–98 %).
+Sable's training pass runs one timestep per chunk (`sable.retention_chunk`): its whole-rollout
+pass (Mava's default) scores every vehicle of every step against every other, (31 · n)² per
+head and environment, where chunks of one step score n² per step and carry the retention state
+between them, the same numbers up to float rounding (tests/test_sable.py). On grid-100-mid
+(2-core AMD EPYC, beside another run, 2026-12-07) one seed trained at 26 steps/s against
+5.3 with the whole rollout in one pass (from the progress of 1,200- and 3,600-step runs)."""
 
 
 Builder = Callable[[str, str], tuple[Callable[..., Any], Iterable[str] | None]]
