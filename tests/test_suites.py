@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from cmat.algorithms import reference_defaults
+from cmat.algorithms import algorithm_names, reference_defaults
 from cmat.cli import main
 from cmat.configfile import (
     field_names,
@@ -39,7 +39,11 @@ def value(config: object, dotted: str) -> object:
 
 
 def flat(settings: dict, algo: str = "cmat") -> dict[str, object]:
-    return {name: value_at(settings, name) for name in layer_fields(settings, algo)}
+    """The dotted names and values of `settings` that apply to `algo`'s runs (a section named by
+    another algorithm does not)."""
+    own = {key: value for key, value in settings.items()
+           if key == algo or key not in algorithm_names()}
+    return {name: value_at(own, name) for name in layer_fields(own, algo)}
 
 
 def value_at(settings: dict, dotted: str) -> object:
@@ -65,6 +69,13 @@ def test_a_suites_settings_resolve_with_their_source(suite: str) -> None:
     assert {sources[name] for name in algorithm} <= {"algorithm cmat"}
     untouched = set(field_names()) - set(expected) - algorithm - {"env"}
     assert {sources[name] for name in untouched} == {"default"}
+    for algo in set(SUITES[suite].settings) & set(algorithm_names()) - {"cmat"}:
+        config, sources = resolve_config(overrides=[f"env={IDS[suite]}", f"algo={algo}"])
+        own = {name: setting for name, setting in flat(SUITES[suite].settings, algo).items()
+               if name.startswith(f"{algo}.")}
+        assert own, algo
+        for name, setting in own.items():
+            assert (value(config, name), sources[name]) == (setting, f"suite {suite}"), name
 
 
 @pytest.mark.parametrize("suite", ["smax", "mamujoco", "grf"])
