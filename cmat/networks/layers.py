@@ -141,9 +141,9 @@ class MultiHeadAttention(nn.Module):
 
         A static position reads the written prefix. A traced one (`scan_positions`) reads the
         whole cache before writing to it, the positions from `position` on masked, and joins
-        the new position's score in the softmax: the same numbers up to rounding, and the
-        write no longer follows a read of the written buffer, so XLA's CPU backend updates the
-        carried cache in place instead of copying it at every position (docs/speed.md)."""
+        the new position's score in the softmax: the same numbers up to rounding, and no read
+        follows the write, so XLA's CPU backend makes half the copies of the carried cache at
+        each position (docs/speed.md)."""
         new = self.project_memory(memory)
         if isinstance(position, int):
             cache = extend(cache, new, position)
