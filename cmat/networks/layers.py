@@ -105,6 +105,15 @@ class MultiHeadAttention(nn.Module):
         """Keys and values of `memory` [..., L, d]."""
         return self.split_heads(self.key(memory)), self.split_heads(self.value(memory))
 
+    def scaled_queries(self, x: jax.Array) -> jax.Array:
+        """Queries of x [..., L, d], split into heads and scaled by 1/sqrt(d/heads)."""
+        queries: jax.Array = self.split_heads(self.query(x)) / np.sqrt(self.n_embd // self.n_head)
+        return queries
+
+    def merge_heads(self, heads: jax.Array, x: jax.Array) -> jax.Array:
+        """The output projection of heads [..., heads, L, d/heads] for queries like x."""
+        return self.out(jnp.moveaxis(heads, -3, -2).reshape(*x.shape[:-1], self.n_embd))
+
     def attend(
         self, x: jax.Array, keys: jax.Array, values: jax.Array, causal: bool = False,
         visible: jax.Array | None = None, query_block: int = 0,
@@ -114,7 +123,7 @@ class MultiHeadAttention(nn.Module):
         With `query_block` > 0 (not with `causal`) and more queries than that, the queries go
         in blocks of that many (`blockwise_attention`): the same result, in memory linear in
         the number of queries at a fixed number of keys."""
-        queries = self.split_heads(self.query(x)) / np.sqrt(self.n_embd // self.n_head)
+        queries = self.scaled_queries(x)
         if 0 < query_block < x.shape[-2] and not causal:
             heads = blockwise_attention(queries, keys, values, query_block, visible)
         else:
@@ -125,7 +134,7 @@ class MultiHeadAttention(nn.Module):
                 mask = jnp.tril(jnp.ones((x.shape[-2], keys.shape[-2]), dtype=bool))
                 logits = jnp.where(mask, logits, jnp.finfo(logits.dtype).min)
             heads = jnp.einsum("...qk,...kd->...qd", jax.nn.softmax(logits, axis=-1), values)
-        return self.out(jnp.moveaxis(heads, -3, -2).reshape(*x.shape[:-1], self.n_embd))
+        return self.merge_heads(heads, x)
 
     def empty_cache(self, token: jax.Array, length: int) -> KeyValues:
         """Zero keys and values of `length` positions for tokens like `token` [..., d]."""
@@ -149,7 +158,7 @@ class MultiHeadAttention(nn.Module):
             cache = extend(cache, new, position)
             return self.attend(x, cache[0][..., : position + 1, :],
                                cache[1][..., : position + 1, :]), cache
-        queries = self.split_heads(self.query(x)) / np.sqrt(self.n_embd // self.n_head)
+        queries = self.scaled_queries(x)
         earlier = jnp.einsum("...qd,...kd->...qk", queries, cache[0])
         earlier = jnp.where(jnp.arange(cache[0].shape[-2]) < position, earlier,
                             jnp.finfo(earlier.dtype).min)
@@ -158,8 +167,7 @@ class MultiHeadAttention(nn.Module):
         earlier, own = jnp.exp(earlier - top), jnp.exp(own - top)
         heads = (jnp.einsum("...qk,...kd->...qd", earlier, cache[1]) + own * new[1]) / (
             earlier.sum(axis=-1, keepdims=True) + own)
-        out = self.out(jnp.moveaxis(heads, -3, -2).reshape(*x.shape[:-1], self.n_embd))
-        return out, extend(cache, new, position)
+        return self.merge_heads(heads, x), extend(cache, new, position)
 
     def __call__(
         self, x: jax.Array, memory: jax.Array, causal: bool = False, query_block: int = 0
