@@ -12,7 +12,12 @@ import pytest
 
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
-from cmat.algorithms.ppo import block_grad_norms, explained_variance
+from cmat.algorithms.ppo import (
+    PER_AGENT_DIAGNOSTICS,
+    block_grad_norms,
+    explained_variance,
+    policy_diagnostics,
+)
 from cmat.cli import main
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -68,6 +73,30 @@ def test_ratio_diagnostics_and_entropy_per_agent_equal_numpy(algo: str) -> None:
     assert 0.05 < expected["joint_clip_frac"] < 1 and expected["agent_clip_frac"] > 0
     for name, value in expected.items():
         assert float(metrics[name]) == pytest.approx(value, rel=1e-4, abs=1e-6), name
+
+
+@pytest.mark.parametrize("n", [PER_AGENT_DIAGNOSTICS, PER_AGENT_DIAGNOSTICS + 1, 250])
+def test_entropy_is_named_per_agent_up_to_the_limit_and_summarised_above(n: int) -> None:
+    rng = np.random.default_rng(n)
+    entropy = rng.uniform(0.0, 2.0, size=(48, n))
+    alive = rng.random((48, n)) > 0.3
+    alive[:, 0] = False
+    log_ratio = rng.normal(scale=0.1, size=(48, n))
+    got = policy_diagnostics(jnp.asarray(log_ratio), jnp.asarray(log_ratio.sum(axis=1)), 0.2,
+                             jnp.asarray(entropy), jnp.asarray(alive))
+    per_agent = (entropy * alive).sum(axis=0) / np.maximum(alive.sum(axis=0), 1)
+    named = {key for key in got if key.startswith("entropy_agent_")}
+    if n <= PER_AGENT_DIAGNOSTICS:
+        assert named == {f"entropy_agent_{i}" for i in range(n)}
+        for i in range(n):
+            assert float(got[f"entropy_agent_{i}"]) == pytest.approx(per_agent[i], rel=1e-5)
+    else:
+        expected = {"min": per_agent.min(), "median": np.median(per_agent),
+                    "max": per_agent.max()}
+        assert named == {f"entropy_agent_{name}" for name in expected}
+        for name, value in expected.items():
+            assert float(got[f"entropy_agent_{name}"]) == pytest.approx(value, rel=1e-5), name
+        assert per_agent.min() == 0.0  # the agent never alive counts as entropy 0
 
 
 def test_block_gradient_norms_equal_numpy() -> None:

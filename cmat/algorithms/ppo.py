@@ -109,6 +109,12 @@ def joint_clip_range(clip_eps: float, active_agents: jax.Array) -> tuple[jax.Arr
     return (1.0 - clip_eps) ** k, (1.0 + clip_eps) ** k
 
 
+PER_AGENT_DIAGNOSTICS = 32
+"""The largest team whose diagnostics name every agent (`entropy_agent_i`): every SMAX team (up
+to 27 units) does; a fleet of hundreds of vehicles logs the spread over agents instead, so its
+metrics.csv keeps a few dozen columns rather than one per vehicle."""
+
+
 def policy_diagnostics(
     agent_log_ratio: jax.Array,
     joint_log_ratio: jax.Array,
@@ -123,7 +129,9 @@ def policy_diagnostics(
     approximate KL ((r − 1) − log r, Schulman's k3 estimator) and the clip fraction
     (|r − 1| > ε) of the joint ratio over samples and of the per-agent ratios over the active
     entries, and each agent's mean entropy over the samples where it is active
-    (`entropy_agent_i`; a dead agent's forced action has entropy 0). `mask` [B, n] is the
+    (`entropy_agent_i`; a dead agent's forced action has entropy 0). Above
+    `PER_AGENT_DIAGNOSTICS` agents (a fleet), the spread of those per-agent means replaces them:
+    `entropy_agent_min`, `entropy_agent_median`, `entropy_agent_max`. `mask` [B, n] is the
     batch's `alive` whatever `ppo.active_masks` says: the diagnostics describe active agents."""
     joint = jnp.exp(jnp.clip(joint_log_ratio, -LOG_RATIO_BOUND, LOG_RATIO_BOUND))
     agent = jnp.exp(jnp.clip(agent_log_ratio, -LOG_RATIO_BOUND, LOG_RATIO_BOUND))
@@ -140,6 +148,11 @@ def policy_diagnostics(
     else:
         weights = jnp.broadcast_to(mask, entropy.shape).astype(entropy.dtype)
         per_agent = jnp.sum(entropy * weights, axis=0) / jnp.maximum(jnp.sum(weights, axis=0), 1.0)
+    if per_agent.shape[0] > PER_AGENT_DIAGNOSTICS:
+        diagnostics["entropy_agent_min"] = jnp.min(per_agent)
+        diagnostics["entropy_agent_median"] = jnp.median(per_agent)
+        diagnostics["entropy_agent_max"] = jnp.max(per_agent)
+        return diagnostics
     for index in range(per_agent.shape[0]):
         diagnostics[f"entropy_agent_{index}"] = per_agent[index]
     return diagnostics
