@@ -1,5 +1,5 @@
 """Training steps/s and peak memory as the team grows: CMAT (m = n, and m fixed), MAT, Sable,
-MAPPO.
+MAPPO, HAPPO.
 
     python benchmarks/agent_scaling.py --out DIR [--teams 3m 8m 25m 27m_vs_30m 50m 100m]
         [--lines cmat mat ...] [--envs 8] [--rollout 25] [--updates 2] [--repeats 1]
@@ -61,6 +61,7 @@ LINES = {
     "mat k=16": ("mat", ["mat.inducing_points=16"]),
     "sable": ("sable", []),
     "mappo": ("mappo", []),
+    "happo": ("happo", []),
     "env only": ("env", []),
 }
 """Lines: name -> (algorithm, config overrides). `env only` steps the environment alone with

@@ -15,7 +15,13 @@ from test_training import TINY, fixed_batch, numpy_cmat_loss
 
 from cmat.algorithms import build_algorithm
 from cmat.algorithms.base import Batch
-from cmat.algorithms.happo.algorithm import HAPPO, compounding_factors, train_phase
+from cmat.algorithms.happo.algorithm import (
+    HAPPO,
+    agent_columns,
+    agent_phase,
+    compounding_factors,
+    train_phase,
+)
 from cmat.algorithms.mappo.algorithm import MAPPO
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
@@ -97,15 +103,20 @@ def happo_setup(built: dict[str, tuple]) -> tuple[LearnerSetup, HAPPO, dict, Bat
     return dataclasses.replace(setup, algorithm=algorithm), algorithm, params, fixed_batch()
 
 
+def happo_phase(setup: LearnerSetup, algorithm: HAPPO, batch: Batch) -> object:
+    """An agent's phase as HAPPO's update runs it: on its actor's slice and its batch column."""
+    @jax.jit
+    def phase(agent: jax.Array, params: dict, state: object, key: jax.Array) -> tuple:
+        return agent_phase(setup.optimizer, partial(algorithm.agent_loss, 0), agent, params,
+                           state, agent_columns(batch, agent), key, setup.config.ppo)
+
+    return phase
+
+
 def test_happo_phase_moves_only_its_agent_and_keeps_the_others_moments(happo_setup: tuple) -> None:
     setup, algorithm, params, batch = happo_setup
     state = setup.optimizer.init(params)
-
-    @jax.jit
-    def phase(agent: jax.Array, params: dict, state: object, key: jax.Array) -> tuple:
-        loss = partial(algorithm.agent_loss, agent)
-        mask = algorithm.agent_mask(params, agent)
-        return train_phase(setup.optimizer, loss, mask, params, state, batch, key, setup.config.ppo)
+    phase = happo_phase(setup, algorithm, batch)
 
     after_1, state_1, _ = phase(1, params, state, jax.random.PRNGKey(1))
     after_0, state_0, _ = phase(0, after_1, state_1, jax.random.PRNGKey(2))
@@ -121,6 +132,45 @@ def test_happo_phase_moves_only_its_agent_and_keeps_the_others_moments(happo_set
         for a, b in zip(rows(moments_1, 1), rows(moments_0, 1)):
             np.testing.assert_array_equal(a, b)
         assert all(np.all(np.asarray(leaf[2]) == 0) for leaf in jax.tree.leaves(moments_0["actor"]))
+
+
+def test_happo_phase_on_its_actors_slice_equals_the_masked_whole_tree(happo_setup: tuple) -> None:
+    """The phase cut to one actor and its column of the batch gives the numbers of training the
+    whole tree on the whole batch with every other actor and the critic masked (their
+    gradients zero, their moments kept)."""
+    setup, algorithm, params, batch = happo_setup
+    ppo = setup.config.ppo
+    state = setup.optimizer.init(params)
+    sliced = happo_phase(setup, algorithm, batch)
+
+    @jax.jit
+    def masked(agent: jax.Array, params: dict, state: object, key: jax.Array) -> tuple:
+        def loss(whole: dict, minibatch: Batch, ppo: PPOConfig) -> tuple:
+            own = {"actor": jax.tree.map(lambda x: x[agent], whole["actor"]),
+                   "critic": whole["critic"]}
+            return algorithm.agent_loss(agent, own, minibatch, ppo)
+
+        is_agent = jnp.arange(SPEC.num_agents) == agent
+        mask = {"actor": jax.tree.map(lambda x: is_agent.reshape(-1, *(1,) * (x.ndim - 1)),
+                                      params["actor"]),
+                "critic": jax.tree.map(lambda _: jnp.asarray(False), params["critic"])}
+        return train_phase(setup.optimizer, loss, mask, params, state, batch, key, ppo)
+
+    expected_params, expected_state = params, state
+    got_params, got_state = params, state
+    for agent, seed in ((2, 5), (0, 6)):
+        expected_params, expected_state, expected_metrics = masked(
+            agent, expected_params, expected_state, jax.random.PRNGKey(seed))
+        got_params, got_state, got_metrics = sliced(
+            agent, got_params, got_state, jax.random.PRNGKey(seed))
+        for want, got in zip(jax.tree.leaves((expected_params, expected_state)),
+                             jax.tree.leaves((got_params, got_state)), strict=True):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-7)
+        for key in ("policy_loss", "entropy", "grad_norm", "grad_norm_actor"):
+            assert float(got_metrics[key]) == pytest.approx(float(expected_metrics[key]),
+                                                            rel=1e-5), key
+    assert differ(rows(params, 2), rows(got_params, 2))
+    assert int(tree_get(got_state, "count")) == 2 * ppo.epochs * ppo.num_minibatches
 
 
 def test_happo_update_trains_every_actor_then_the_critic_with_own_step_counts(

@@ -378,8 +378,10 @@ def test_happo_agent_loss_masks_samples_where_the_agent_is_dead() -> None:
     params, batch = dead_agent_batch(algorithm, 3, per_agent=False)
     alive = batch.alive.at[:, 1].set(jnp.array([True, False, True, False, False]))
     batch = batch._replace(alive=alive)
-    _loss, metrics = algorithm.agent_loss(jnp.asarray(1), params, batch, config.ppo)
-    distribution = algorithm.agent_distribution(params, jnp.asarray(1), batch)
+    actor = jax.tree.map(lambda x: x[1], params["actor"])
+    own = {"actor": actor, "critic": params["critic"]}
+    _loss, metrics = algorithm.agent_loss(jnp.asarray(1), own, batch, config.ppo)
+    distribution = algorithm.agent_distribution(actor, jnp.asarray(1), batch)
     log_ratio = np.asarray(distribution.log_prob(batch.actions[:, 1]) - batch.log_probs[:, 1])
     ratio, adv, eps = np.exp(log_ratio), np.asarray(batch.advantages), config.ppo.clip_eps
     objective = np.minimum(ratio * adv, np.clip(ratio, 1 - eps, 1 + eps) * adv)

@@ -9,7 +9,9 @@ it, on the same samples and held constant; then the critic is trained on the val
 The run's one optimiser serves all phases: each phase moves only its own parameters and their
 Adam moments, and every phase restarts from the update's step count, so each actor and the critic
 keep their own moments and step count exactly as HARL's separate optimisers do (every phase takes
-the same epochs × minibatches steps).
+the same epochs × minibatches steps). An agent's phase works on its own actor's slice of the
+stacked actors and of their moments (`agent_phase`), so it costs one actor's optimiser steps, not
+n actors' (a 1,000-vehicle fleet's update would otherwise be quadratic in the fleet).
 """
 
 from __future__ import annotations
@@ -44,15 +46,11 @@ def compounding_factors(
     return jnp.exp(before)[..., jnp.argsort(order)]
 
 
-def select_state(
-    optimizer: optax.GradientTransformation, mask: Params, new: Any, old: Any, steps_from_new: bool
-) -> Any:
+def select_state(optimizer: optax.GradientTransformation, mask: Params, new: Any, old: Any) -> Any:
     """Optimiser state: its param-shaped leaves (Adam moments) from `new` where `mask` holds and
-    from `old` elsewhere; its other leaves (step counts) from `new` or `old`."""
+    from `old` elsewhere; its other leaves (step counts) from `new`."""
     choose = optax.tree_utils.tree_map_params(
-        optimizer, lambda _, m: m, new, mask,
-        transform_non_params=lambda _: jnp.asarray(steps_from_new),
-    )
+        optimizer, lambda _, m: m, new, mask, transform_non_params=lambda _: jnp.asarray(True))
     return jax.tree.map(jnp.where, choose, new, old)
 
 
@@ -65,7 +63,7 @@ def restricted(
     def update(grads: Params, state: Any, params: Params | None = None) -> tuple[Params, Any]:
         updates, new_state = optimizer.update(grads, state, params)
         updates = jax.tree.map(lambda m, u: jnp.where(m, u, jnp.zeros_like(u)), mask, updates)
-        return updates, select_state(optimizer, mask, new_state, state, steps_from_new=True)
+        return updates, select_state(optimizer, mask, new_state, state)
 
     return optax.GradientTransformation(optimizer.init, update)
 
@@ -78,6 +76,52 @@ def train_phase(
     return minibatch_sgd(loss, restricted(optimizer, mask), params, opt_state, batch, rng, ppo)
 
 
+def agent_columns(batch: Batch, agent: jax.Array) -> Batch:
+    """`batch` with its per-agent fields [B, n, ...] cut to agent `agent`'s column [B, 1, ...]
+    (the team's advantages, values, targets and global states as they are): what an agent's
+    phase shuffles into minibatches every epoch, so a phase moves one agent's samples, not the
+    team's."""
+    def column(x: jax.Array) -> jax.Array:
+        return jax.lax.dynamic_slice_in_dim(x, agent, 1, axis=1)
+
+    return batch._replace(
+        obs=column(batch.obs), action_mask=column(batch.action_mask),
+        actions=column(batch.actions), log_probs=column(batch.log_probs),
+        alive=None if batch.alive is None else column(batch.alive),
+    )
+
+
+def agent_phase(
+    optimizer: optax.GradientTransformation, loss: Loss, agent: jax.Array, params: Params,
+    opt_state: Any, batch: Batch, rng: jax.Array, ppo: PPOConfig,
+) -> tuple[Params, Any, dict[str, jax.Array]]:
+    """Agent `agent`'s phase: `train_phase` on {"actor": its own actor, "critic": the critic
+    (frozen)}, cut from the stacked actors [n, ...] and from the matching Adam moments, then
+    written back. `loss(own, batch, ppo)` takes that cut tree. The same numbers as `train_phase`
+    over the whole tree with every other actor masked (tests/test_baselines_mlp.py), in one
+    actor's time and memory instead of n actors'. The step counts come from the phase."""
+    def take(x: jax.Array) -> jax.Array:
+        return cast(jax.Array, jax.lax.dynamic_index_in_dim(x, agent, keepdims=False))
+
+    def put(whole: jax.Array, part: jax.Array) -> jax.Array:
+        return cast(jax.Array, jax.lax.dynamic_update_index_in_dim(whole, part, agent, 0))
+
+    is_actor = {"actor": jax.tree.map(lambda _: True, params["actor"]),
+                "critic": jax.tree.map(lambda _: False, params["critic"])}
+    actor_moment = optax.tree_utils.tree_map_params(
+        optimizer, lambda _, actor: actor, opt_state, is_actor,
+        transform_non_params=lambda _: False)
+    own = {"actor": jax.tree.map(take, params["actor"]), "critic": params["critic"]}
+    own_state = jax.tree.map(lambda cut, x: take(x) if cut else x, actor_moment, opt_state)
+    own, own_state, metrics = train_phase(
+        optimizer, loss, is_actor, own, own_state, batch, rng, ppo)
+    params = {"actor": jax.tree.map(put, params["actor"], own["actor"]),
+              "critic": params["critic"]}
+    state = jax.tree.map(lambda cut, whole, part: put(whole, part) if cut else part,
+                         actor_moment, opt_state, own_state)
+    return params, state, metrics
+
+
 @dataclass(frozen=True)
 class HAPPO(MAPPO):
     """Params {"actor": the n actors stacked on a leading agent axis, "critic": ...}.
@@ -86,13 +130,13 @@ class HAPPO(MAPPO):
     """
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
-        """Each actor initialised on its own (a vmapped orthogonal init hangs XLA:CPU)."""
+        """Each actor initialised on its own key, one after another (`lax.map`: a vmapped
+        orthogonal init hangs XLA:CPU, and n unrolled ones make the program grow with n)."""
         keys = jax.random.split(key, self.num_agents + 1)
-        actors = [
-            self.actor.init(keys[i], obs[i], action_mask[i]) for i in range(self.num_agents)
-        ]
+        actors = jax.lax.map(lambda agent: self.actor.init(*agent),
+                             (keys[:-1], obs, action_mask))
         return {
-            "actor": jax.tree.map(lambda *leaves: jnp.stack(leaves), *actors),
+            "actor": actors,
             "critic": self.critic.init(keys[-1], self.critic_input(obs, self.blank_state)),
         }
 
@@ -104,10 +148,10 @@ class HAPPO(MAPPO):
         return cast(tuple[jax.Array, jax.Array], apply(params["actor"], obs, action_mask))
 
     def agent_distribution(
-        self, params: Params, agent: jax.Array, batch: Batch
+        self, actor: Params, agent: int | jax.Array, batch: Batch
     ) -> distrax.Distribution:
-        """One agent's distributions [B] on the samples of a batch."""
-        actor = jax.tree.map(lambda x: x[agent], params["actor"])
+        """Agent `agent`'s distributions [B] on the samples of a batch, from its own actor's
+        parameters (one slice of params["actor"])."""
         action_params, log_std = cast(
             tuple[jax.Array, jax.Array],
             self.actor.apply(actor, batch.obs[:, agent], batch.action_mask[:, agent]),
@@ -115,11 +159,12 @@ class HAPPO(MAPPO):
         return action_distribution(action_params, log_std, self.discrete)
 
     def agent_loss(
-        self, agent: jax.Array, params: Params, batch: Batch, ppo: PPOConfig
+        self, agent: int | jax.Array, own: Params, batch: Batch, ppo: PPOConfig
     ) -> tuple[jax.Array, dict[str, jax.Array]]:
-        """One agent's clipped surrogate and entropy; `batch.advantages` already hold M·A. With
+        """One agent's clipped surrogate and entropy from its own actor (`own["actor"]`, the
+        tree `agent_phase` trains); `batch.advantages` already hold M·A. With
         `ppo.active_masks` both average over the samples where the agent is active."""
-        distribution = self.agent_distribution(params, agent, batch)
+        distribution = self.agent_distribution(own["actor"], agent, batch)
         team_mask = active_mask(batch, ppo)
         mask = None if team_mask is None else team_mask[:, agent]
         log_ratio = distribution.log_prob(batch.actions[:, agent]) - batch.log_probs[:, agent]
@@ -136,16 +181,6 @@ class HAPPO(MAPPO):
         critic_loss = self.critic_loss(params, batch, ppo)
         return ppo.value_coef * critic_loss, {"value_loss": critic_loss}
 
-    def agent_mask(self, params: Params, agent: jax.Array) -> Params:
-        """True on `agent`'s actor parameters only."""
-        is_agent = jnp.arange(self.num_agents) == agent
-        return {
-            "actor": jax.tree.map(
-                lambda x: is_agent.reshape(-1, *(1,) * (x.ndim - 1)), params["actor"]
-            ),
-            "critic": jax.tree.map(lambda _: jnp.asarray(False), params["critic"]),
-        }
-
     def update(
         self, optimizer: optax.GradientTransformation, params: Params, opt_state: Any,
         batch: Batch, rng: jax.Array, ppo: PPOConfig,
@@ -156,14 +191,17 @@ class HAPPO(MAPPO):
         ones; `grad_norm_actor` is the mean over the agent phases."""
         keys = jax.random.split(rng, self.num_agents + 2)
         order = jax.random.permutation(keys[0], self.num_agents)
-        everywhere = jax.tree.map(lambda _: jnp.asarray(True), params)
+        moment = optax.tree_utils.tree_map_params(
+            optimizer, lambda _: True, opt_state, transform_non_params=lambda _: False)
         critic_only = {
             "actor": jax.tree.map(lambda _: jnp.asarray(False), params["actor"]),
             "critic": jax.tree.map(lambda _: jnp.asarray(True), params["critic"]),
         }
 
         def restart(state: Any) -> Any:
-            return select_state(optimizer, everywhere, state, opt_state, steps_from_new=False)
+            """`state`'s moments with the update's starting step counts."""
+            return jax.tree.map(lambda is_moment, now, start: now if is_moment else start,
+                                moment, state, opt_state)
 
         Carry = tuple[Params, Any, jax.Array]
 
@@ -173,12 +211,14 @@ class HAPPO(MAPPO):
             params, state, new_log_probs = carry
             agent, key = step
             factor = compounding_factors(new_log_probs, batch.log_probs, order)[:, agent]
-            params, state, metrics = train_phase(
-                optimizer, partial(self.agent_loss, agent), self.agent_mask(params, agent),
-                params, restart(state), batch._replace(advantages=factor * batch.advantages), key,
+            params, state, metrics = agent_phase(
+                optimizer, partial(self.agent_loss, 0), agent, params, restart(state),
+                agent_columns(batch._replace(advantages=factor * batch.advantages), agent), key,
                 ppo,
             )
-            updated = self.agent_distribution(params, agent, batch)
+            actor = jax.tree.map(
+                lambda x: jax.lax.dynamic_index_in_dim(x, agent, keepdims=False), params["actor"])
+            updated = self.agent_distribution(actor, agent, batch)
             new_log_probs = new_log_probs.at[:, agent].set(
                 updated.log_prob(batch.actions[:, agent])
             )
