@@ -23,6 +23,7 @@ from cmat.algorithms.happo.algorithm import (
     train_phase,
 )
 from cmat.algorithms.mappo.algorithm import MAPPO
+from cmat.algorithms.mappo.network import MLPActor
 from cmat.config import NetworkConfig, PPOConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.resolve import load_config
@@ -188,6 +189,30 @@ def test_happo_update_trains_every_actor_then_the_critic_with_own_step_counts(
     ppo = setup.config.ppo
     assert int(tree_get(new_state, "count")) == ppo.epochs * ppo.num_minibatches
     assert all(np.isfinite(float(metrics[key])) for key in LOSS_METRICS)
+
+
+@pytest.mark.parametrize("n, d", [(3, 5), (40, 2)])
+def test_the_actors_agent_ids_in_closed_form_equal_the_explicit_one_hot(n: int, d: int) -> None:
+    """MAPPO's actor on o_i with `agent_ids` gives the outputs of the same parameters on the
+    explicit [o_i; one-hot(i)], and initialises exactly those parameters."""
+    implicit = MLPActor(16, 4, True, 0.01, agent_ids=n)
+    explicit = MLPActor(16, 4, True, 0.01)
+    keys = jax.random.split(jax.random.PRNGKey(n), 3)
+    obs = 3.0 * jax.random.normal(keys[0], (2, n, d)) + 1.0
+    mask = jnp.ones((2, n, 4), bool)
+    with_ids = jnp.concatenate([obs, jnp.broadcast_to(jnp.eye(n), (2, n, n))], axis=-1)
+    params = implicit.init(keys[1], obs, mask)
+    assert jax.tree.structure(params) == jax.tree.structure(explicit.init(keys[1], with_ids, mask))
+    for got, want in zip(jax.tree.leaves(params),
+                         jax.tree.leaves(explicit.init(keys[1], with_ids, mask))):
+        np.testing.assert_array_equal(got, want)
+    leaves = jax.tree.leaves(params)
+    noise = jax.random.split(keys[2], len(leaves))
+    params = jax.tree.unflatten(jax.tree.structure(params), [
+        leaf + 0.5 * jax.random.normal(key, leaf.shape) for leaf, key in zip(leaves, noise)])
+    got = np.asarray(implicit.apply(params, obs, mask)[0])
+    want = np.asarray(explicit.apply(params, with_ids, mask)[0])
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * np.abs(want).max())
 
 
 def test_triple_bert_permutes_distributions_with_agents_and_keeps_the_value(built: dict) -> None:

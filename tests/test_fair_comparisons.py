@@ -164,9 +164,10 @@ def test_mappo_appends_no_second_agent_id() -> None:
     with_id = build_algorithm(
         "mappo", config.network, dataclasses.replace(spec(), agent_id=True), config.ppo
     )
-    obs = jnp.zeros((3, 6))
-    assert plain.actor_inputs(obs).shape == (3, 9)
-    assert with_id.actor_inputs(obs).shape == (3, 6)
+    obs, mask = jnp.zeros((3, 6)), jnp.ones((3, 4), bool)
+    for algorithm, width in ((plain, 9), (with_id, 6)):
+        params = algorithm.init(jax.random.PRNGKey(0), obs, mask)
+        assert params["actor"]["params"]["MLPTrunk_0"]["Dense_0"]["kernel"].shape[0] == width
     assert make_env("smax:3m", agent_id=True).spec.agent_id
     assert not make_env("smax:3m").spec.agent_id
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, cast
+from typing import Any, ClassVar, cast
 
 import distrax
 import jax
@@ -128,6 +128,9 @@ class HAPPO(MAPPO):
 
     `loss` (MAPPO's) is the simultaneous objective, every M = 1; `update` is the sequential one.
     """
+
+    shared_actor: ClassVar[bool] = False
+    """Each agent has its own actor, on o_i alone."""
 
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         """Each actor initialised on its own key, one after another (`lax.map`: a vmapped

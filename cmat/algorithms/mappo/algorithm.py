@@ -14,7 +14,7 @@ the reference's optional recurrent one.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import cast
+from typing import ClassVar, cast
 
 import distrax
 import jax
@@ -45,8 +45,9 @@ class MAPPO(PPOAlgorithm):
     discrete: bool
     state_dim: int = 0
     """The environment's global state size; 0: the critic reads the concatenated observations."""
-    obs_has_agent_id: bool = False
-    """The observations already end with the agent's one-hot id (`EnvSpec.agent_id`)."""
+    shared_actor: ClassVar[bool] = True
+    """One actor for every agent, so it reads the agent's one-hot id after o_i (`MLPActor`'s
+    `agent_ids`, where the observations do not end with it already: `EnvSpec.agent_id`)."""
 
     @classmethod
     def build(
@@ -54,9 +55,10 @@ class MAPPO(PPOAlgorithm):
         options: AlgorithmOptions | None = None,
     ) -> MAPPO:
         layers = options_of(options, MLPOptions).mlp_layers
+        appends_ids = cls.shared_actor and not spec.agent_id
         actor = MLPActor(
             config.n_embd, spec.action_dim, spec.discrete, config.init_gain, config.log_std_init,
-            layers,
+            layers, spec.num_agents if appends_ids else 0,
         )
         return cls(
             actor,
@@ -64,7 +66,6 @@ class MAPPO(PPOAlgorithm):
             spec.num_agents,
             spec.discrete,
             spec.state_dim,
-            spec.agent_id,
         )
 
     def critic_input(self, obs: jax.Array, global_state: jax.Array | None) -> jax.Array:
@@ -81,18 +82,10 @@ class MAPPO(PPOAlgorithm):
             )
         return global_state
 
-    def actor_inputs(self, obs: jax.Array) -> jax.Array:
-        """[o_i; one-hot(i)] for every agent: [..., n, obs_dim + n]; obs as it is where it already
-        ends with the id."""
-        if self.obs_has_agent_id:
-            return obs
-        ids = jnp.eye(self.num_agents, dtype=obs.dtype)
-        return jnp.concatenate([obs, jnp.broadcast_to(ids, (*obs.shape[:-1], ids.shape[1]))], -1)
-
     def init(self, key: jax.Array, obs: jax.Array, action_mask: jax.Array) -> Params:
         actor_key, critic_key = jax.random.split(key)
         return {
-            "actor": self.actor.init(actor_key, self.actor_inputs(obs), action_mask),
+            "actor": self.actor.init(actor_key, obs, action_mask),
             "critic": self.critic.init(critic_key, self.critic_input(obs, self.blank_state)),
         }
 
@@ -107,7 +100,7 @@ class MAPPO(PPOAlgorithm):
         """Every agent's action parameters [..., n, A] and log-std."""
         return cast(
             tuple[jax.Array, jax.Array],
-            self.actor.apply(params["actor"], self.actor_inputs(obs), action_mask),
+            self.actor.apply(params["actor"], obs, action_mask),
         )
 
     def distribution(
