@@ -60,6 +60,7 @@ LINES = {
     "mat": ("mat", []),
     "mat k=16": ("mat", ["mat.inducing_points=16"]),
     "sable": ("sable", []),
+    "triple_bert": ("triple_bert", []),
     "mappo": ("mappo", []),
     "happo": ("happo", []),
     "env only": ("env", []),

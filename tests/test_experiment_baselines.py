@@ -5,6 +5,7 @@ the environment's metrics per line, and reused from disk while their setting hol
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -70,3 +71,32 @@ def test_a_second_report_reuses_the_baselines_until_their_setting_changes(
     lines = json.loads((grid / "results.json").read_text())["tasks"][0]["lines"]
     assert lines["Hungarian"]["scores"][0] != 1234.5
     assert json.loads(saved.read_text())["setting"]["episodes"] == 3
+
+
+def test_an_export_takes_the_baselines_evaluations_along(
+        grid: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(yaml.safe_dump(SPEC))
+    assert main(["experiment", str(spec), "--out", str(grid), "--report-only"]) == 0
+
+    def evaluated_again(*_: object) -> None:
+        raise AssertionError("the export evaluated a baseline again")
+
+    monkeypatch.setattr("cmat.envs.dispatch.baselines.evaluate_means", evaluated_again)
+    exported = tmp_path / "committed"
+    assert main(["experiment", str(spec), "--out", str(grid), "--report-only",
+                 "--export", str(exported)]) == 0
+    for name in ("random", "hungarian"):
+        saved = Path("baselines") / "dispatch_grid-6-high" / f"{name}.json"
+        assert (exported / saved).read_bytes() == (grid / saved).read_bytes()
+    lines = json.loads((exported / "results.json").read_text())["tasks"][0]["lines"]
+    assert lines["Hungarian"] == json.loads(
+        (grid / "results.json").read_text())["tasks"][0]["lines"]["Hungarian"]
+
+    not_trained = tmp_path / "not_trained"
+    shutil.copytree(grid / "baselines", not_trained / "baselines")
+    assert main(["experiment", str(spec), "--out", str(not_trained), "--report-only",
+                 "--export", str(tmp_path / "baselines_only")]) == 0
+    lines = json.loads((tmp_path / "baselines_only" / "results.json").read_text())[
+        "tasks"][0]["lines"]
+    assert list(lines) == ["random (legal)", "Hungarian"]

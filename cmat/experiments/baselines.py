@@ -5,7 +5,8 @@ written, beside the learned lines in the tables, statistics and figures.
 A baseline learns nothing, so its line is one evaluation per seed: `eval_episodes` episodes of
 the task's configuration (its runs' `eval_episodes` and `env_kwargs`) from that seed's keys,
 recorded at the task's budget. Evaluations are kept in `OUT/baselines/TASK/NAME.json` and
-reused while the episodes, options and seeds they were made with are the grid's.
+reused while the episodes, options and seeds they were made with are the grid's; an export
+(`cmat experiment ... --export DIR`) takes them along, so its report does not evaluate them again.
 """
 
 from __future__ import annotations
@@ -18,6 +19,10 @@ from typing import Any
 from cmat.experiments.lines import Line
 from cmat.experiments.plan import Plan
 from cmat.experiments.spec import EnvEntry
+
+BASELINES_DIR = "baselines"
+"""The folder of an experiment directory that keeps the baselines' evaluations, one
+`TASK/NAME.json` each."""
 
 BASELINE_VARIANT = "baseline"
 """The `Line.variant` of a baseline line."""
@@ -39,7 +44,7 @@ def baseline_lines(plan: Plan) -> dict[str, list[Line]]:
                    "seeds": list(range(plan.spec.seed, plan.spec.seed + plan.spec.seeds)),
                    "env_steps": config.budget_steps}
         for name in plan.spec.baselines:
-            rows = evaluated_rows(plan.out / "baselines" / env.slug / f"{name}.json", env,
+            rows = evaluated_rows(plan.out / BASELINES_DIR / env.slug / f"{name}.json", env,
                                   name, setting)
             lines.setdefault(env.id, []).append(Line(
                 BASELINE_LABELS[name], BASELINE_VARIANT, f"baseline:{name}", ("main",), [], rows))

@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from cmat.errors import CmatError
+from cmat.experiments.baselines import BASELINES_DIR
 from cmat.experiments.execute import (
     LocalExecutor,
     RayExecutor,
@@ -172,11 +173,11 @@ def say_selection(selected: list[Run], plan: Plan, only: list[str] | None) -> No
 
 def export_results(plan: Plan, target: Path, carry: bool = False) -> None:
     """Copy every complete run of `plan` into `target` as results without checkpoints
-    (`RunDir.export`), with the spec, then write the report there from every complete run
-    `target` holds, so `target` can be committed or shared. Runs `target` holds that `plan`'s
-    directory lacks stay. `target` then serves as `--out` for `--report-only`, and a copy of it
-    as `--out` to continue the grid on another machine: exported runs count as complete (a
-    fine-tuning stage still to run retrains its base first).
+    (`RunDir.export`), with the spec and the baselines' evaluations, then write the report
+    there from every complete run `target` holds, so `target` can be committed or shared.
+    Runs `target` holds that `plan`'s directory lacks stay. `target` then serves as `--out` for
+    `--report-only`, and a copy of it as `--out` to continue the grid on another machine:
+    exported runs count as complete (a fine-tuning stage still to run retrains its base first).
 
     With `carry`, the runs the grid still needs go with their checkpoints, so the copy continues
     them instead of starting over: every partial run past its first chunk (resumed there; one
@@ -197,7 +198,10 @@ def export_results(plan: Plan, target: Path, carry: bool = False) -> None:
         run_dir.export(target / "runs" / run.name, checkpoint=keep)
         if keep:
             carried.append(run.name)
+    target.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(plan.spec.path, target / "spec.yaml")
+    if (plan.out / BASELINES_DIR).is_dir():
+        shutil.copytree(plan.out / BASELINES_DIR, target / BASELINES_DIR, dirs_exist_ok=True)
     say(f"exported {len(complete)} complete runs (results without checkpoints) to {target}")
     if carry:
         say(f"carried {len(carried)} runs with their checkpoints (partial, or the base of a "
