@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cmat.algorithms.cmat.options import CMATOptions
-from cmat.config import INT32_MAX, ConfigSources, TrainConfig, validate
+from cmat.config import EVAL_ACTIONS, INT32_MAX, ConfigSources, TrainConfig, validate
 from cmat.errors import CmatError
 from cmat.resolve import resolve_config
 from cmat.rundir import Checkpoint, RunDir
@@ -100,9 +100,11 @@ class Run:
     ) -> pd.DataFrame:
         """`cmat eval`: evaluate the latest checkpoint on `episodes` fresh episodes per seed
         (default the run's `eval_episodes`), acting `greedy` or `sample` (default the run's
-        `eval_actions`); `seed` picks the episodes (docs/evaluation.md); `iterations` runs a
-        CMAT decoder for fewer consensus iterations than it was trained with; `checkpoint` is
-        `latest`, `best` or the env steps of a kept periodic one.
+        `eval_actions`) or, on a dispatch task, `matched` (the policy's most likely claims in
+        which no order goes to two vehicles, `cmat.envs.dispatch.matched`); `seed` picks the
+        episodes (docs/evaluation.md); `iterations` runs a CMAT decoder for fewer consensus
+        iterations than it was trained with; `checkpoint` is `latest`, `best` or the env steps
+        of a kept periodic one.
 
         Returns one row per trained seed (`seed` and the evaluation metrics: `episode_return`,
         `win_rate`, environment metrics); `frame.attrs` holds what `cmat eval` prints beside
@@ -276,14 +278,18 @@ def evaluate_run(
         raise CmatError(f"--seed must be in [0, {INT32_MAX:,}], got {episode_seed:,}")
     config = run_dir.config()
     if actions is not None:
-        if actions not in ("greedy", "sample"):
-            raise CmatError(f"actions must be 'greedy' or 'sample', got {actions!r}")
-        config = dataclasses.replace(config, eval_actions=actions)
+        if actions not in (*EVAL_ACTIONS, MATCHED):
+            raise CmatError(f"actions must be 'greedy', 'sample' or 'matched', got {actions!r}")
+        if actions != MATCHED:
+            config = dataclasses.replace(config, eval_actions=actions)
     if episodes is not None and not 0 < episodes <= INT32_MAX:
         raise CmatError(f"--episodes must be in [1, {INT32_MAX:,}], got {episodes:,}")
     if iterations is not None and config.algo != "cmat":
         raise CmatError(f"--iterations applies to cmat runs only; {run_dir.path} is a "
                         f"{config.algo!r} run")
+    if actions == MATCHED:
+        return evaluate_matched_run(run_dir, config, episodes, episode_seed, iterations,
+                                    checkpoint)
     from cmat.runners.base import restore_run
 
     trainer = build_trainer(config)
@@ -311,6 +317,43 @@ def evaluate_run(
         for index in range(config.seeds)
     ]
     return extra, per_seed
+
+
+MATCHED = "matched"
+"""`cmat eval --actions matched`: a dispatch run's policy decoded into conflict-free claims
+(`cmat.envs.dispatch.matched`)."""
+
+
+def evaluate_matched_run(
+    run_dir: RunDir, config: TrainConfig, episodes: int | None, episode_seed: int,
+    iterations: int | None, checkpoint: Checkpoint,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """`evaluate_run` with `--actions matched`: every seed's policy on the episodes the dispatch
+    baselines play with `episode_seed` (`cmat.envs.dispatch.baselines.rollout`), each step's
+    claims matched (`cmat.envs.dispatch.matched.matched_plan`)."""
+    if not config.env.startswith("dispatch:"):
+        raise CmatError(f"--actions matched applies to dispatch tasks (vehicles matched to "
+                        f"orders), not {config.env}")
+    if iterations is not None:
+        raise CmatError("--iterations does not combine with --actions matched")
+    if episodes is not None and episodes > 100_000:
+        raise CmatError(f"--episodes must be in [1, 100,000] with --actions matched, got "
+                        f"{episodes:,}")
+    from cmat.envs.dispatch.baselines import baseline_env, means
+    from cmat.envs.dispatch.matched import evaluate_matched
+    from cmat.policy import load_policy
+
+    env = baseline_env(config.env, config.env_kwargs)
+    episodes = episodes or config.eval_episodes
+    per_seed, extra = [], {}
+    for seed in range(config.seed, config.seed + config.seeds):
+        policy = load_policy(run_dir.path, seed=seed, checkpoint=checkpoint)
+        figures = means(evaluate_matched(env, policy, episodes, episode_seed))
+        per_seed.append({"seed": seed, **{k: json_number(v) for k, v in figures.items()}})
+        extra = {"checkpoint": checkpoint, "env_steps": policy.env_steps,
+                 "budget_steps": config.budget_steps, "complete": policy.complete}
+    return {**extra, "episodes_per_seed": episodes, "actions": MATCHED,
+            "episode_seed": episode_seed}, per_seed
 
 
 def with_eval_iterations(

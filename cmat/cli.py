@@ -114,9 +114,11 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--episodes", type=int,
                           help="episodes per seed (default: the run's eval_episodes; 32 for a "
                                "baseline without --run)")
-    evaluate.add_argument("--actions", choices=("greedy", "sample"),
+    evaluate.add_argument("--actions", choices=("greedy", "sample", "matched"),
                           help="act greedily or sample the policy (default: the run's "
-                               "eval_actions)")
+                               "eval_actions); matched: dispatch tasks, the policy's most "
+                               "likely claims in which no order goes to two vehicles, on the "
+                               "episodes the baselines play with --seed")
     evaluate.add_argument("--baseline", metavar="NAME",
                           help="dispatch tasks only: evaluate the classical policy NAME "
                                "(random, greedy, hungarian) instead of a checkpoint")

@@ -90,6 +90,30 @@ class Policy:
         actions: jax.Array = _sample_team(self, self.params, obs, action_mask, key)
         return actions
 
+    def log_probs(self, obs: Any, action_mask: Any = None) -> jax.Array:
+        """Each agent's log-probabilities of its actions, [n, A] for obs [n, obs_dim] (with a
+        leading batch axis as `greedy`), -inf where `action_mask` rules an action out: the
+        policy's decision for agents that decide independently given the team's observations
+        (`cmat.algorithms.base.Factorised`: CMAT on its consensus, MAPPO, HAPPO, Triple-BERT).
+        A joint decision under constraints between the agents scores them, as the dispatch
+        tasks' conflict-free matching does (`cmat.envs.dispatch.matched`).
+
+        Raises CmatError for MAT, PMAT and Sable (each agent's distribution depends on the
+        actions decoded before it), for continuous actions, and for inputs of the wrong
+        shape."""
+        from cmat.algorithms.base import Factorised
+
+        if not isinstance(self.algorithm, Factorised) or self.recurrent:
+            raise CmatError(f"{self.config.algo} decodes its agents one after another, so it has "
+                            f"no per-agent action distributions to score; CMAT, MAPPO, HAPPO and "
+                            f"Triple-BERT have")
+        if not self.spec.discrete:
+            raise CmatError(f"log_probs needs discrete actions; {self.spec.env_id} has "
+                            f"continuous ones")
+        obs, action_mask = self._inputs(obs, action_mask)
+        log_probs: jax.Array = _team_log_probs(self, self.params, obs, action_mask)
+        return log_probs
+
     def initial_memory(self, batch: int | None = None) -> Any:
         """The state before an episode's first step (() for a feed-forward policy); with
         `batch`, one per team of a batch [batch, ...]."""
@@ -163,6 +187,15 @@ def _greedy_team(policy: Policy, params: Any, obs: jax.Array, mask: jax.Array) -
     actions = act(params, obs, mask) if obs.ndim == 2 else jax.vmap(act, (None, 0, 0))(
         params, obs, mask)
     return env_actions(policy.spec, actions)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _team_log_probs(policy: Policy, params: Any, obs: jax.Array, mask: jax.Array) -> jax.Array:
+    logits = policy.algorithm.action_logits  # type: ignore[attr-defined]
+    if obs.ndim == 3:
+        logits = jax.vmap(logits, (None, 0, 0))
+    log_probs = jax.nn.log_softmax(logits(params, obs, mask), axis=-1)
+    return jnp.where(mask, log_probs, -jnp.inf)
 
 
 @functools.partial(jax.jit, static_argnums=0)

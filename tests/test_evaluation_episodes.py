@@ -73,6 +73,23 @@ def test_cmat_eval_seed_picks_the_episodes(run: Path, capsys: pytest.CaptureFixt
     assert "--seed must be in [0," in capsys.readouterr().err.splitlines()[-1]
 
 
+def test_matched_decoding_never_conflicts_and_replays_its_episodes(
+        run: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    def evaluated(*argv: str) -> dict[str, object]:
+        capsys.readouterr()
+        assert main(["eval", "--run", str(run), "--actions", "matched", *argv]) == 0
+        return cast(dict[str, object], json.loads(capsys.readouterr().out.splitlines()[-1]))
+
+    first = evaluated("--seed", "5", "--episodes", "2")
+    assert first["actions"] == "matched" and first["episode_seed"] == 5
+    row = cast(list[dict[str, float]], first["per_seed"])[0]
+    assert row["conflicts_per_step"] == 0 and 0 < row["service_rate"] <= 1
+    assert evaluated("--seed", "5", "--episodes", "2") == first
+    assert main(["eval", "--run", str(run), "--actions", "matched", "--episodes",
+                 "100001"]) == 2
+    assert "--episodes must be in [1, 100,000]" in capsys.readouterr().err.splitlines()[-1]
+
+
 def test_reports_name_the_runs_evaluated_under_the_old_protocol(run: Path, tmp_path: Path) -> None:
     """A run records its evaluation protocol in sessions.jsonl; a results page names the runs
     whose sessions predate it (every evaluation replayed one set of episodes)."""

@@ -201,6 +201,21 @@ class Recurrent(Protocol):
         ...
 
 
+@runtime_checkable
+class Factorised(Protocol):
+    """An algorithm whose agents decide independently given the team's observations: CMAT (on
+    its consensus), MAPPO, HAPPO and Triple-BERT, not MAT, PMAT or Sable, which decode one
+    agent after another. Each agent's action distribution on its own is then the team's
+    policy, which is what a joint decision under constraints between agents (the dispatch
+    tasks' conflict-free matching, `cmat.envs.dispatch.matched`) scores."""
+
+    def action_logits(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
+        """Every agent's masked logits [n, A] for one team's obs [n, obs_dim] and action_mask
+        [n, A] (unavailable actions at `cmat.networks.heads.MASKED_LOGIT`): those `greedy`
+        takes the argmax of. Discrete actions only."""
+        ...
+
+
 def is_recurrent(algorithm: Algorithm) -> bool:
     """Whether `algorithm` acts from a carried state (`Recurrent`, its `recurrent` true)."""
     return isinstance(algorithm, Recurrent) and algorithm.recurrent

@@ -87,6 +87,12 @@ class CMAT(PPOAlgorithm):
         output = cast(PolicyOutput, self.network.apply(params, obs, action_mask))
         return greedy_action(output.action_params, self.network.discrete)
 
+    def action_logits(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
+        """Every agent's masked logits [n, A] on the consensus `greedy` acts on (`Factorised`):
+        given it, the agents decide independently (paper eq. policy)."""
+        output = cast(PolicyOutput, self.network.apply(params, obs, action_mask))
+        return output.action_params
+
     def value(
         self, params: Params, obs: jax.Array, global_state: jax.Array | None = None
     ) -> jax.Array:

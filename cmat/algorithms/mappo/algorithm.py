@@ -117,7 +117,11 @@ class MAPPO(PPOAlgorithm):
         return ActResult(actions, log_probs, self.value(params, obs, global_state))
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
-        return greedy_action(self.policy(params, obs, action_mask)[0], self.discrete)
+        return greedy_action(self.action_logits(params, obs, action_mask), self.discrete)
+
+    def action_logits(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
+        """Every agent's masked logits [n, A] (`Factorised`)."""
+        return self.policy(params, obs, action_mask)[0]
 
     def value(
         self, params: Params, obs: jax.Array, global_state: jax.Array | None = None

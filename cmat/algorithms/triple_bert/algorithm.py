@@ -57,8 +57,12 @@ class TripleBERT(PPOAlgorithm):
         return ActResult(actions, log_probs, output.value)
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
+        return greedy_action(self.action_logits(params, obs, action_mask), self.network.discrete)
+
+    def action_logits(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
+        """Every agent's masked logits [n, A] (`Factorised`)."""
         output = cast(TripleBERTOutput, self.network.apply(params, obs, action_mask))
-        return greedy_action(output.action_params, self.network.discrete)
+        return output.action_params
 
     def value(
         self, params: Params, obs: jax.Array, global_state: jax.Array | None = None

@@ -85,36 +85,58 @@ def evaluate(env: DispatchEnv, policy: str, episodes: int, seed: int = 0) -> dic
     [episodes]. Raises CmatError for an unknown policy or a number of episodes below 1."""
     if policy not in POLICIES:
         raise CmatError(f"unknown dispatch baseline {policy!r}; available: {', '.join(POLICIES)}")
+    random_actions = jax.jit(lambda key, mask: jax.random.categorical(
+        key, jnp.where(mask, 0.0, -jnp.inf)).astype(jnp.int32))
+
+    def decide(state: DispatchState, timestep: Any, key: jax.Array) -> jax.Array:
+        if policy == "random":
+            actions: jax.Array = random_actions(key, timestep.action_mask)
+            return actions
+        return jnp.asarray(np.stack([HOST_POLICIES[policy](*view) for view in host_views(state)]))
+
+    return rollout(env, decide, episodes, seed)
+
+
+Decide = Callable[[DispatchState, Any, jax.Array], jax.Array]
+"""A fleet's decision for a batch of episodes: (state, timestep, key) -> actions [episodes, n]."""
+
+
+def rollout(
+    env: DispatchEnv, decide: Decide, episodes: int, seed: int = 0
+) -> dict[str, np.ndarray]:
+    """`episodes` whole episodes from keys of `seed`, each step's actions from `decide` on the
+    host between jitted environment steps: per episode the return (`episode_return`) and the
+    operator's metrics (`episode_metrics`), each an array [episodes]. The episodes and the
+    environment's draws depend on `seed` alone, so policies evaluated with one seed meet the
+    same start states. Raises CmatError for a number of episodes below 1."""
     if episodes < 1:
         raise CmatError(f"episodes must be at least 1, got {episodes}")
     reset_keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
     state, timestep = jax.jit(jax.vmap(env.reset))(reset_keys)
     step = jax.jit(jax.vmap(env.step_in_episode))
-    random_actions = jax.jit(lambda key, mask: jax.random.categorical(
-        key, jnp.where(mask, 0.0, -jnp.inf)).astype(jnp.int32))
     returns = np.zeros(episodes)
     key = jax.random.PRNGKey(seed + 1)
     for _ in range(env.episode_minutes):
         key, act_key, step_key = jax.random.split(key, 3)
-        if policy == "random":
-            actions = random_actions(act_key, timestep.action_mask)
-        else:
-            actions = jnp.asarray(np.stack([
-                HOST_POLICIES[policy](*view) for view in host_views(state)]))
+        actions = decide(state, timestep, act_key)
         state, timestep = step(jax.random.split(step_key, episodes), state, actions)
         returns += np.asarray(timestep.reward)
     metrics = episode_metrics(state.stats, env.episode_minutes)
     return {"episode_return": returns, **{k: np.asarray(v) for k, v in metrics.items()}}
 
 
+def means(result: dict[str, np.ndarray]) -> dict[str, float]:
+    """Each figure of `rollout` averaged over the episodes that define it (NaN where none does,
+    e.g. waits with no order served)."""
+    return {name: float(values[~np.isnan(values)].mean()) if (~np.isnan(values)).any()
+            else math.nan for name, values in result.items()}
+
+
 def evaluate_means(
     env: DispatchEnv, policy: str, episodes: int, seed: int = 0
 ) -> dict[str, float]:
-    """`evaluate`'s figures averaged over the episodes: each metric over the episodes that
-    define it (NaN where none does, e.g. waits with no order served)."""
-    result = evaluate(env, policy, episodes, seed)
-    return {name: float(values[~np.isnan(values)].mean()) if (~np.isnan(values)).any()
-            else math.nan for name, values in result.items()}
+    """`evaluate`'s figures averaged over the episodes (`means`)."""
+    return means(evaluate(env, policy, episodes, seed))
 
 
 def baseline_env(env_id: str, env_kwargs: dict[str, Any]) -> DispatchEnv:
