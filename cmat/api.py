@@ -345,15 +345,17 @@ def evaluate_matched_run(
 
     env = baseline_env(config.env, config.env_kwargs)
     episodes = episodes or config.eval_episodes
-    per_seed, extra = [], {}
-    for seed in range(config.seed, config.seed + config.seeds):
-        policy = load_policy(run_dir.path, seed=seed, checkpoint=checkpoint)
+    policies = [load_policy(run_dir.path, seed=seed, checkpoint=checkpoint)
+                for seed in range(config.seed, config.seed + config.seeds)]
+    per_seed = []
+    for policy in policies:
         figures = means(evaluate_matched(env, policy, episodes, episode_seed))
-        per_seed.append({"seed": seed, **{k: json_number(v) for k, v in figures.items()}})
-        extra = {"checkpoint": checkpoint, "env_steps": policy.env_steps,
-                 "budget_steps": config.budget_steps, "complete": policy.complete}
-    return {**extra, "episodes_per_seed": episodes, "actions": MATCHED,
-            "episode_seed": episode_seed}, per_seed
+        per_seed.append({"seed": policy.seed,
+                         **{name: json_number(value) for name, value in figures.items()}})
+    extra = {"checkpoint": checkpoint, "env_steps": policies[0].env_steps,
+             "budget_steps": config.budget_steps, "complete": policies[0].complete,
+             "episodes_per_seed": episodes, "actions": MATCHED, "episode_seed": episode_seed}
+    return extra, per_seed
 
 
 def with_eval_iterations(

@@ -84,8 +84,7 @@ class CMAT(PPOAlgorithm):
         return self.network.options.consensus_policy != "deterministic"
 
     def greedy(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
-        output = cast(PolicyOutput, self.network.apply(params, obs, action_mask))
-        return greedy_action(output.action_params, self.network.discrete)
+        return greedy_action(self.action_logits(params, obs, action_mask), self.network.discrete)
 
     def action_logits(self, params: Params, obs: jax.Array, action_mask: jax.Array) -> jax.Array:
         """Every agent's masked logits [n, A] on the consensus `greedy` acts on (`Factorised`):
