@@ -86,6 +86,8 @@ def test_only_agents_that_decide_independently_have_log_probs() -> None:
             with pytest.raises(CmatError, match="decodes its agents one after another"):
                 policy.log_probs(step.obs, step.action_mask)
             continue
+        if name not in ("cmat", "mappo"):  # the others share these two's acting code
+            continue
         params = algorithm.init(jax.random.PRNGKey(1), step.obs, step.action_mask)
         policy = Policy(env.spec, load_config(overrides=["env=matrix:fig1", f"algo={name}"]),
                         0, 0, algorithm, params)
