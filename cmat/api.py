@@ -30,7 +30,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cmat.algorithms.cmat.options import CMATOptions
-from cmat.config import EVAL_ACTIONS, INT32_MAX, ConfigSources, TrainConfig, validate
+from cmat.config import (
+    EVAL_ACTIONS,
+    HOST_EPISODES,
+    INT32_MAX,
+    ConfigSources,
+    TrainConfig,
+    validate,
+)
 from cmat.errors import CmatError
 from cmat.resolve import resolve_config
 from cmat.rundir import Checkpoint, RunDir
@@ -336,9 +343,9 @@ def evaluate_matched_run(
                         f"orders), not {config.env}")
     if iterations is not None:
         raise CmatError("--iterations does not combine with --actions matched")
-    if episodes is not None and episodes > 100_000:
-        raise CmatError(f"--episodes must be in [1, 100,000] with --actions matched, got "
-                        f"{episodes:,}")
+    if episodes is not None and episodes > HOST_EPISODES:
+        raise CmatError(f"--episodes must be in [1, {HOST_EPISODES:,}] with --actions matched, "
+                        f"got {episodes:,}")
     from cmat.envs.dispatch.baselines import baseline_env, means
     from cmat.envs.dispatch.matched import evaluate_matched
     from cmat.policy import load_policy

@@ -28,7 +28,7 @@ from cmat.api import (
     train,
     train_into,
 )
-from cmat.config import FINETUNE_MODES, INT32_MAX, TrainConfig, validate
+from cmat.config import FINETUNE_MODES, HOST_EPISODES, INT32_MAX, TrainConfig, validate
 from cmat.configfile import field_docs, field_names, to_mapping, to_yaml
 from cmat.envs import probe_env
 from cmat.envs.suites import registry, suite_of
@@ -430,8 +430,9 @@ def baseline_command(args: argparse.Namespace) -> None:
     else:
         env_id, env_kwargs, episodes = args.env, {}, 32
     episodes = args.episodes if args.episodes is not None else episodes
-    if not 0 < episodes <= 100_000:
-        raise CmatError(f"--episodes must be in [1, 100,000] for a baseline, got {episodes:,}")
+    if not 0 < episodes <= HOST_EPISODES:
+        raise CmatError(f"--episodes must be in [1, {HOST_EPISODES:,}] for a baseline, got "
+                        f"{episodes:,}")
     from cmat.envs.dispatch.baselines import baseline_env, evaluate_means
 
     means = evaluate_means(baseline_env(env_id, env_kwargs), args.baseline, episodes, args.seed)

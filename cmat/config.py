@@ -23,6 +23,10 @@ NONFINITE_POLICIES = ("error", "warn")
 """What a host environment does with a NaN or infinite observation, reward or state
 (`TrainConfig.host_nonfinite`): stop the run with a one-line error, or replace the values by 0
 and count them (`metrics.csv` column `env_nonfinite`)."""
+HOST_EPISODES = 100_000
+"""The most episodes `cmat eval` plays at once on the host (the dispatch baselines and matched
+decoding, `cmat.envs.dispatch.baselines.rollout`: one batch in the host's memory)."""
+
 EVAL_ACTIONS = ("greedy", "sample")
 """How evaluation acts (`TrainConfig.eval_actions`)."""
 
