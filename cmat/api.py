@@ -356,7 +356,7 @@ def evaluate_matched_run(
                 for seed in range(config.seed, config.seed + config.seeds)]
     per_seed = []
     for policy in policies:
-        figures = means(evaluate_matched(env, policy, episodes, episode_seed))
+        figures = means(evaluate_matched(env, policy.log_probs, episodes, episode_seed))
         per_seed.append({"seed": policy.seed,
                          **{name: json_number(value) for name, value in figures.items()}})
     extra = {"checkpoint": checkpoint, "env_steps": policies[0].env_steps,

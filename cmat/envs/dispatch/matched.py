@@ -21,7 +21,8 @@ vehicle's take actions 1..K).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -30,9 +31,6 @@ from scipy.optimize import linear_sum_assignment
 
 from cmat.envs.dispatch.baselines import rollout
 from cmat.envs.dispatch.env import DispatchEnv, DispatchState
-
-if TYPE_CHECKING:
-    from cmat.policy import Policy
 
 
 def matched_plan(
@@ -69,17 +67,20 @@ def matched_plan(
 
 
 def evaluate_matched(
-    env: DispatchEnv, policy: Policy, episodes: int, seed: int = 0
+    env: DispatchEnv, log_probs: Callable[[jax.Array, jax.Array], jax.Array], episodes: int,
+    seed: int = 0,
 ) -> dict[str, np.ndarray]:
-    """`episodes` episodes of `policy` decoded by `matched_plan` at every step, from keys of
+    """`episodes` episodes of a policy decoded by `matched_plan` at every step, from keys of
     `seed` (the same episodes `cmat.envs.dispatch.baselines.evaluate` plays with that seed):
-    per episode the return and the operator's metrics, arrays [episodes]. Raises CmatError
-    where the policy has no per-agent distributions (`cmat.Policy.log_probs`)."""
+    per episode the return and the operator's metrics, arrays [episodes]. `log_probs(obs
+    [E, n, obs_dim], action_mask [E, n, A])` gives the policy's per-vehicle log-probabilities
+    [E, n, A] (`cmat.Policy.log_probs`, which raises CmatError for a policy without per-agent
+    distributions)."""
 
     def decide(state: DispatchState, timestep: Any, key: jax.Array) -> jax.Array:
-        log_probs = np.asarray(policy.log_probs(timestep.obs, timestep.action_mask))
+        fleets = np.asarray(log_probs(timestep.obs, timestep.action_mask))
         masks, candidates = np.asarray(timestep.action_mask), np.asarray(state.candidates)
         return jnp.asarray(np.stack([matched_plan(*fleet) for fleet in
-                                     zip(log_probs, masks, candidates)]))
+                                     zip(fleets, masks, candidates)]))
 
     return rollout(env, decide, episodes, seed)
