@@ -106,8 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(handler=train_command)
 
     evaluate = commands.add_parser(
-        "eval", help="greedy evaluation of a run's checkpoint, or of a classical dispatch "
-                     "baseline (--baseline)")
+        "eval", help="evaluation of a run's checkpoint (acting as its eval_actions: greedy, "
+                     "sampled on dispatch), or of a classical dispatch baseline (--baseline)")
     evaluate.add_argument("--run", type=Path, metavar="DIR",
                           help="run directory (with --baseline: evaluate the baseline on the "
                                "run's environment and options)")

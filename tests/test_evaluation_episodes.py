@@ -10,10 +10,14 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import cast
 
+import jax
 import numpy as np
 import pytest
 
+import cmat
 from cmat.cli import main
+from cmat.envs.dispatch.env import METRICS as DISPATCH_METRICS
+from cmat.envs.dispatch.matched import matched_plan
 from cmat.experiments.markdown import old_protocol_text
 from cmat.experiments.plan import Run
 from cmat.experiments.report import eval_protocol
@@ -88,6 +92,32 @@ def test_matched_decoding_never_conflicts_and_replays_its_episodes(
     assert main(["eval", "--run", str(run), "--actions", "matched", "--episodes",
                  "100001"]) == 2
     assert "--episodes must be in [1, 100,000]" in capsys.readouterr().err.splitlines()[-1]
+
+
+def test_the_documented_dispatch_loops_play_whole_episodes_and_matching_never_conflicts(
+        run: Path) -> None:
+    """The dispatch loops of docs/policies.md with the policy of `run`: sampled with a new key
+    each minute, and matched on the state's candidates. Both take legal actions only and end
+    after the task's 20 minutes; the matched episode makes no conflicting claim."""
+    policy = cmat.load_policy(run, seed=0)
+    env = policy.make_env()
+    for matched in (False, True):
+        key = jax.random.key(0)
+        state, step = env.reset(key)
+        minutes = 0
+        while not bool(step.done):
+            key, act_key, step_key = jax.random.split(key, 3)
+            if matched:
+                actions = matched_plan(np.asarray(policy.log_probs(step.obs, step.action_mask)),
+                                       np.asarray(step.action_mask), np.asarray(state.candidates))
+            else:
+                actions = np.asarray(policy.act(step.obs, step.action_mask, act_key))
+            assert np.asarray(step.action_mask)[np.arange(len(actions)), actions].all()
+            state, step = env.step(step_key, state, jax.numpy.asarray(actions))
+            minutes += 1
+        assert minutes == 20
+        if matched:
+            assert float(step.metrics[DISPATCH_METRICS.index("conflicts_per_step")]) == 0
 
 
 def test_reports_name_the_runs_evaluated_under_the_old_protocol(run: Path, tmp_path: Path) -> None:

@@ -37,7 +37,8 @@ class EncoderOptions(AlgorithmOptions):
     equivariant in the agents, so CMAT stays order independent. A different network (k more
     parameters per block and a second attention): fixed for a run. 0 (the default, and the
     paper's encoder): full self-attention over agents. A departure from the paper for teams
-    large enough that n² scores dominate a step (docs/dispatch.md, "Fleets of 1,000")."""
+    large enough that n² scores dominate a step (docs/dispatch.md, "Large fleets: vehicles
+    attending through inducing points")."""
 
     network_options: ClassVar[tuple[str, ...]] = ("inducing_points",)
 

@@ -155,7 +155,7 @@ SUITES: dict[str, Suite] = {
                     requires=("brax", "pip install 'brax>=0.14.2,<0.15' (cmat's mabrax extra)")),
     "dispatch": Suite("dispatch:CITY-N-LEVEL (e.g. dispatch:grid-100-mid)",
                       "cmat.envs.dispatch:build", DISPATCH_SETTINGS,
-                      "cmat's dispatch suite: one episode per rollout, m = 5 as in the CMAT "
+                      "cmat's dispatch suite: half an episode per rollout, m = 5 as in the CMAT "
                       "authors' ride-sharing code; budget and PPO settings measured "
                       "(DISPATCH_SETTINGS)"),
     "jax": Suite("jax:package.module:factory (your own)", "cmat.envs.user_jax:build",
