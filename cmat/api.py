@@ -229,17 +229,21 @@ def experiment(
     parallel: int | None = None,
     only: list[str] | None = None,
     report_only: bool = False,
+    seeds_per_run: int | None = None,
 ) -> Experiment:
     """`cmat experiment`: run what is missing of the grid in `spec` (a YAML file, or the name
     of a spec shipped in cmat/experiments/specs, e.g. `dispatch`) in `out` (default
     runs/experiments/SPEC_NAME), `parallel` runs at once, only the runs matching the shell
-    patterns `only`, or none with `report_only`; then write its report. Returns the `Experiment`.
+    patterns `only`, or none with `report_only`, the seeds without a run on disk grouped
+    `seeds_per_run` to a run (default: the spec's); then write its report. Returns the
+    `Experiment`.
 
     Raises CmatError for a bad spec or directory, and after reporting, if runs failed."""
     from cmat.experiments.runner import run_experiment
 
     plan = run_experiment(Path(spec), out=None if out is None else Path(out),
-                          parallel=parallel, only=only, report_only=report_only)
+                          parallel=parallel, only=only, report_only=report_only,
+                          seeds_per_run=seeds_per_run)
     return Experiment(plan.out, plan)
 
 

@@ -236,6 +236,10 @@ def build_parser() -> argparse.ArgumentParser:
                                  "(config, metrics, checkpoint header) into DIR and report "
                                  "there, to commit or share; a copy of DIR continues the grid "
                                  "elsewhere as --out")
+    experiment.add_argument("--seeds-per-run", type=int, metavar="K",
+                            help="seeds one run trains together, for the seeds that have no run "
+                                 "on disk yet (default: the spec's seeds_per_run); 1 finishes a "
+                                 "long cell one seed at a time")
     experiment.add_argument("--carry", action="store_true",
                             help="with --export: also copy the checkpoints the grid still needs "
                                  "(partial runs, and bases of fine-tuning stages still to run), "
@@ -469,7 +473,7 @@ def experiment_command(args: argparse.Namespace) -> None:
 
     run_experiment(args.spec, out=args.out, parallel=args.parallel, ray_address=args.ray,
                    dry_run=args.dry_run, report_only=args.report_only, only=args.only,
-                   export=args.export, carry=args.carry)
+                   export=args.export, carry=args.carry, seeds_per_run=args.seeds_per_run)
 
 
 def render_command(args: argparse.Namespace) -> None:

@@ -8,6 +8,7 @@ import csv
 import dataclasses
 import fcntl
 import io
+import itertools
 import json
 import os
 import shutil
@@ -35,7 +36,7 @@ from cmat.experiments.lines import (
     load_suite_aggregates,
     matching_suite_aggregates,
 )
-from cmat.experiments.plan import make_plan, schedule
+from cmat.experiments.plan import FINISHED, cell_seed_groups, make_plan, schedule
 from cmat.experiments.runner import run_experiment
 from cmat.experiments.spec import load_spec, spec_names
 from cmat.experiments.statistics import aggregate, improvement_probability, iqm
@@ -616,6 +617,65 @@ def test_only_runs_the_matching_runs_and_reports_every_complete_one(
     assert main(["experiment", str(path), "--out", str(out), "--only", "smax_3m/*"]) == 2
     assert "--only 'smax_3m/*' matches no run of the grid" in one_error_line(
         capsys.readouterr().err)
+
+
+@pytest.mark.unit
+def test_a_cells_runs_on_disk_keep_their_seeds_and_the_others_follow_seeds_per_run(
+        tmp_path: Path) -> None:
+    """Random folders of run directories (this algorithm's, in and out of the spec's seeds,
+    overlapping; another algorithm's; a file): the groups cover the spec's seeds exactly once,
+    each run on disk within them is kept unless one at least as large overlaps it, and the other
+    seeds go in consecutive groups of `seeds_per_run`, each full but the last of a stretch."""
+    rng = np.random.default_rng(0)
+    smoke = load_spec(SMOKE)
+    for trial in range(300):
+        first_seed, seeds = int(rng.integers(0, 3)), int(rng.integers(1, 7))
+        per_run = int(rng.integers(1, seeds + 1))
+        spec = dataclasses.replace(smoke, seed=first_seed, seeds=seeds, seeds_per_run=per_run)
+        wanted = set(range(first_seed, first_seed + seeds))
+        folder = tmp_path / str(trial)
+        folder.mkdir()
+        on_disk = set()
+        for _ in range(int(rng.integers(0, 4))):
+            first, count = int(rng.integers(0, 8)), int(rng.integers(1, 4))
+            last = first + count - 1
+            (folder / (f"mat-s{first}" + (f"-{last}" if count > 1 else ""))).mkdir(exist_ok=True)
+            on_disk.add((first, count))
+        (folder / "cmat-s0-99").mkdir()
+        (folder / "mat-s0-99.txt").touch()
+        groups = cell_seed_groups(spec, folder, "mat")
+        assert sorted(s for first, n in groups for s in range(first, first + n)) == sorted(wanted)
+        assert groups == sorted(groups)
+        kept = [group for group in groups if group in on_disk]
+        for first, count in on_disk - set(kept):
+            members = set(range(first, first + count))
+            assert not members <= wanted or any(
+                n >= count and members & set(range(f, f + n)) for f, n in kept), (trial, groups)
+        new = [group for group in groups if group not in on_disk]
+        assert all(n <= per_run for _, n in new)
+        for (first, n), (following, _) in itertools.pairwise(new):
+            assert first + n < following or n == per_run, (trial, groups)
+    spec = dataclasses.replace(smoke, seed=0, seeds=5, seeds_per_run=2)
+    assert cell_seed_groups(spec, tmp_path / "none", "mat") == [(0, 2), (2, 2), (4, 1)]
+
+
+def test_seeds_per_run_finishes_a_cell_one_seed_at_a_time_and_keeps_the_runs_on_disk(
+        grid: tuple[Path, bytes, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--seeds-per-run", "1",
+                 "--only", "*/default/mat-s1"]) == 0
+    assert checkpoint_steps(out / "runs/matrix_fig1/default/mat-s1") == 1000
+    assert "(n=1)" in (out / "results.md").read_text()
+    mat = [run for run in make_plan(load_spec(SMOKE), out).runs if run.algo == "mat"]
+    assert [(run.name, run.status) for run in mat] == [
+        ("matrix_fig1/default/mat-s0", "new"), ("matrix_fig1/default/mat-s1", FINISHED)]
+    whole = run_experiment(SMOKE, out=copy_grid(grid, tmp_path), seeds_per_run=1, dry_run=True)
+    assert [(run.name, run.status) for run in whole.runs] == [
+        (name.removeprefix("runs/"), FINISHED) for name in (CMAT_RUN, MAT_RUN, STAGE_RUN)]
+    capsys.readouterr()
+    assert main(["experiment", str(SMOKE), "--out", str(out), "--seeds-per-run", "0"]) == 2
+    assert "--seeds-per-run must be > 0, got 0" in one_error_line(capsys.readouterr().err)
 
 
 @pytest.mark.parametrize(

@@ -1,7 +1,9 @@
 """Planning an experiment: the grid's runs and what each needs, from what is on disk.
 
-Every cell of the grid (environment × variant × algorithm × seed group) is one run directory
-under `OUT/runs/ENV/VARIANT/ALGO-sFIRST-LAST`. Before anything runs, each directory is inspected:
+Every cell of the grid (environment × variant × algorithm) is one run directory per seed group
+under `OUT/runs/ENV/VARIANT/ALGO-sFIRST-LAST` (`cell_seed_groups`: the groups on disk stay, the
+other seeds go in groups of the spec's `seeds_per_run`). Before anything runs, each directory is
+inspected:
 
 - absent (or empty): a new run;
 - complete (checkpoint at the run's budget, checksum good, eval rows of every seed at that
@@ -19,6 +21,7 @@ an unknown id), are reported and skipped.
 from __future__ import annotations
 
 import dataclasses
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -93,12 +96,16 @@ def make_plan(spec: ExperimentSpec, out: Path) -> Plan:
     """Every run of the grid with its expected config and its status on disk."""
     plan = Plan(spec, out)
     cells: dict[tuple[str, str, str, int], Run] = {}
+    groups: dict[tuple[str, str, str], list[tuple[int, int]]] = {}
     ordered = order_variants(spec.variants)
     for env in spec.envs:
         env_runs = []
         for variant in (v for v in ordered if v.covers(env.id)):
             for algo in variant.algos:
-                for seed, seeds in spec.seed_groups():
+                groups[env.id, variant.name, algo] = (
+                    groups[env.id, variant.base, algo] if variant.base is not None
+                    else cell_seed_groups(spec, out / "runs" / env.slug / variant.name, algo))
+                for seed, seeds in groups[env.id, variant.name, algo]:
                     base = cells.get((env.id, variant.base or "", algo, seed))
                     run = make_run(spec, out, env, variant, algo, seed, seeds, base)
                     cells[(env.id, variant.name, algo, seed)] = run
@@ -122,6 +129,40 @@ def make_plan(spec: ExperimentSpec, out: Path) -> Plan:
         plan.runs.extend(env_runs)
     inspect_all(plan)
     return plan
+
+
+RUN_NAME = re.compile(r"(?P<algo>.+)-s(?P<first>\d+)(?:-(?P<last>\d+))?")
+"""A run directory's name within its cell's folder: `ALGO-sFIRST` or `ALGO-sFIRST-LAST`."""
+
+
+def cell_seed_groups(spec: ExperimentSpec, folder: Path, algo: str) -> list[tuple[int, int]]:
+    """(first seed, number of seeds) of each run of the cell whose runs are `folder/ALGO-s…`,
+    in seed order: the run directories already there keep their seeds, whichever
+    `seeds_per_run` made them (a grid continued with one seed per run keeps its finished runs
+    of three; of two that overlap, the one with more seeds), and the spec's other seeds go in
+    runs of up to `seeds_per_run` consecutive seeds."""
+    wanted = set(range(spec.seed, spec.seed + spec.seeds))
+    found = []
+    if folder.is_dir():
+        for path in folder.iterdir():
+            match = RUN_NAME.fullmatch(path.name)
+            if path.is_dir() and match is not None and match["algo"] == algo:
+                first = int(match["first"])
+                last = int(match["last"]) if match["last"] is not None else first
+                found.append((first, last - first + 1))
+    groups = []
+    for first, seeds in sorted(found, key=lambda group: (-group[1], group[0])):
+        members = set(range(first, first + seeds))
+        if seeds > 0 and members <= wanted:
+            groups.append((first, seeds))
+            wanted -= members
+    new: list[tuple[int, int]] = []
+    for seed in sorted(wanted):
+        if new and sum(new[-1]) == seed and new[-1][1] < spec.seeds_per_run:
+            new[-1] = (new[-1][0], new[-1][1] + 1)
+        else:
+            new.append((seed, 1))
+    return sorted(groups + new)
 
 
 def inspect_all(plan: Plan) -> None:

@@ -5,6 +5,7 @@ missing (`cmat.experiments.execute`), report the results from every complete run
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import json
 import shutil
@@ -53,6 +54,7 @@ def run_experiment(
     only: list[str] | None = None,
     export: Path | None = None,
     carry: bool = False,
+    seeds_per_run: int | None = None,
 ) -> Plan:
     """Plan, execute and report the experiment of `spec_path` in `out`; with `report_only`,
     report the complete runs already in `out` and start none (without the directory's lock,
@@ -60,10 +62,16 @@ def run_experiment(
     names `ENV/VARIANT/ALGO-sFIRST-LAST`) runs just the matching runs of the grid; the report
     still covers every complete run. `export` copies the results of every complete run, without
     checkpoints, into that directory and reports there (`export_results`); `carry` adds the
-    checkpoints the grid still needs, to continue it from that copy."""
+    checkpoints the grid still needs, to continue it from that copy. `seeds_per_run` replaces
+    the spec's for the seeds that have no run on disk yet (`cell_seed_groups`): one seed per
+    run finishes a long cell piece by piece, each exported as it completes."""
     spec = load_spec(spec_path)
     if parallel is not None and parallel <= 0:
         raise CmatError(f"--parallel must be > 0, got {parallel}")
+    if seeds_per_run is not None:
+        if seeds_per_run <= 0:
+            raise CmatError(f"--seeds-per-run must be > 0, got {seeds_per_run}")
+        spec = dataclasses.replace(spec, seeds_per_run=min(seeds_per_run, spec.seeds))
     if dry_run and (report_only or export is not None):
         other = "--report-only" if report_only else "--export"
         raise CmatError(f"--dry-run and {other} exclude each other")

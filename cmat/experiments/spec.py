@@ -94,11 +94,6 @@ class ExperimentSpec:
     def variant(self, name: str) -> Variant:
         return next(v for v in self.variants if v.name == name)
 
-    def seed_groups(self) -> list[tuple[int, int]]:
-        """(first seed, number of seeds) of each run of a cell."""
-        starts = range(self.seed, self.seed + self.seeds, self.seeds_per_run)
-        return [(s, min(self.seeds_per_run, self.seed + self.seeds - s)) for s in starts]
-
 
 SPECS = Path(__file__).parent / "specs"
 """The experiment specs shipped with cmat: the grids behind the results pages, and smoke."""
