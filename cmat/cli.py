@@ -34,7 +34,7 @@ from cmat.envs import probe_env
 from cmat.envs.suites import registry, suite_of
 from cmat.errors import CmatError
 from cmat.plots import plot_diagnostics, plot_runs
-from cmat.resolve import explain, resolve_config
+from cmat.resolve import explain, load_config, resolve_config
 from cmat.rundir import RunDir, parse_checkpoint
 from cmat.runners import distributed
 from cmat.version import __version__
@@ -124,6 +124,10 @@ def build_parser() -> argparse.ArgumentParser:
                                "(random, greedy, hungarian) instead of a checkpoint")
     evaluate.add_argument("--env", metavar="ID",
                           help="with --baseline and no --run: the dispatch task to evaluate on")
+    evaluate.add_argument("--set", action="extend", nargs="+", default=[],
+                          metavar="env_kwargs.NAME=VALUE",
+                          help="with --baseline --env: the task's options, as for train (e.g. "
+                               "env_kwargs.city_file=my_city.npz)")
     evaluate.add_argument("--seed", type=int, default=0,
                           help="which evaluation episodes (start states and draws) each seed "
                                "plays (default 0; training evaluates at env step t with seed t, "
@@ -400,6 +404,9 @@ def eval_command(args: argparse.Namespace) -> None:
         return
     if args.run is None:
         raise CmatError("cmat eval needs --run DIR (or --baseline NAME with --env ID or --run)")
+    if args.set:
+        raise CmatError("--set applies to --baseline --env; a run is evaluated with its own "
+                        "config")
     run_dir = RunDir.open(args.run)
     config = run_dir.config()
     episodes = args.episodes or config.eval_episodes
@@ -429,10 +436,18 @@ def baseline_command(args: argparse.Namespace) -> None:
     if args.actions is not None:
         raise CmatError("--actions applies to a run's policy, not to a baseline")
     if args.run is not None:
+        if args.set:
+            raise CmatError("--set applies to --baseline --env; with --run the baseline takes "
+                            "the run's options")
         config = RunDir.open(args.run).config()
         env_id, env_kwargs, episodes = config.env, config.env_kwargs, config.eval_episodes
     else:
-        env_id, env_kwargs, episodes = args.env, {}, 32
+        other = [item for item in args.set if not item.startswith("env_kwargs.")]
+        if other:
+            raise CmatError(f"--set with --baseline takes the task's options "
+                            f"(env_kwargs.NAME=VALUE) only, got {other[0]!r}")
+        config = load_config(None, [f"env={args.env}", *args.set])
+        env_id, env_kwargs, episodes = args.env, config.env_kwargs, 32
     episodes = args.episodes if args.episodes is not None else episodes
     if not 0 < episodes <= HOST_EPISODES:
         raise CmatError(f"--episodes must be in [1, {HOST_EPISODES:,}] for a baseline, got "

@@ -7,6 +7,8 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+import re
+import shutil
 from functools import partial
 from pathlib import Path
 
@@ -21,7 +23,7 @@ from cmat.cli import main
 from cmat.envs import make_env
 from cmat.envs.dispatch import DispatchEnv, episode_metrics, make_task
 from cmat.envs.dispatch.baselines import evaluate, greedy_plan, hungarian_plan
-from cmat.envs.dispatch.city import grid_city, manhattan_city
+from cmat.envs.dispatch.city import MANHATTAN_TABLE, grid_city, manhattan_city
 from cmat.envs.dispatch.env import DispatchStats
 from cmat.envs.user_jax import check_marl_env
 from cmat.errors import CmatError
@@ -54,14 +56,31 @@ def rollout(env: DispatchEnv, key: jax.Array, steps: int) -> tuple[object, objec
     return trace
 
 
-@pytest.fixture(scope="module")
-def busy_env() -> DispatchEnv:
-    return make_task("grid-30-high", grid_size=4, episode_minutes=40)
+def random_city_table(path: Path, seed: int, zones: int = 9) -> Path:
+    """A city of our own making: `zones` zones at random positions, travel minutes growing with
+    distance in 3 parts of the day, demand in 4 slots with a third of the pairs empty."""
+    rng = np.random.default_rng(seed)
+    coords = rng.uniform(size=(zones, 2))
+    distance = np.linalg.norm(coords[:, None] - coords[None], axis=-1)
+    travel = 1 + 8 * distance[None] * rng.uniform(0.8, 1.5, size=(3, 1, 1))
+    demand = rng.gamma(1.0, size=(4, zones, zones)) * (rng.uniform(size=(4, zones, zones)) > 0.3)
+    np.savez(path, demand=demand, travel_minutes=travel, coords=coords)
+    return path
+
+
+@pytest.fixture(scope="module", params=["grid", "custom"])
+def busy_env(request: pytest.FixtureRequest,
+             tmp_path_factory: pytest.TempPathFactory) -> DispatchEnv:
+    """A busy 30-vehicle fleet on the 4 × 4 grid, and on a random city of its own table."""
+    if request.param == "grid":
+        return make_task("grid-30-high", grid_size=4, episode_minutes=40)
+    table = random_city_table(tmp_path_factory.mktemp("city") / "city.npz", seed=3)
+    return make_task("custom-30-high", city_file=str(table), episode_minutes=40)
 
 
 @pytest.mark.unit
 def test_the_env_keeps_the_protocol_and_its_state_checkpoints(busy_env: DispatchEnv) -> None:
-    check_marl_env(busy_env, "dispatch:grid-30-high")
+    check_marl_env(busy_env, busy_env.spec.env_id)
     spec = busy_env.spec
     assert (spec.num_agents, spec.action_dim, spec.max_episode_steps) == (30, 1 + 5 + 4, 40)
 
@@ -118,8 +137,11 @@ def test_masked_actions_are_stays(busy_env: DispatchEnv) -> None:
 
 
 @pytest.mark.unit
-def test_demand_matches_the_tables_rates() -> None:
-    env = make_task("manhattan-200-mid", episode_minutes=30, start_window=0.0)
+@pytest.mark.parametrize("city", ["manhattan", "custom"])
+def test_demand_matches_the_tables_rates(city: str, tmp_path: Path) -> None:
+    options = ({"city_file": str(random_city_table(tmp_path / "city.npz", seed=5, zones=12))}
+               if city == "custom" else {})
+    env = make_task(f"{city}-200-mid", episode_minutes=30, start_window=0.0, **options)
     states, _ = rollout(env, jax.random.PRNGKey(5), 30)
     generated = int(states.stats.generated[-1].sum())
     minutes = env.start_minute + np.arange(31)
@@ -130,13 +152,15 @@ def test_demand_matches_the_tables_rates() -> None:
     fresh = states.order_valid & (states.order_waited == 0)
     origins = np.bincount(np.asarray(states.order_origin)[np.asarray(fresh)],
                           minlength=env.city.num_zones)
-    table = env.city.demand[env.city.slot_of(minutes)].sum(axis=(0, 2))
+    table = env.city.demand[env.city.slot_of(minutes)].sum(axis=(0, 2)).astype(np.float64)
     seen = table > 0
     expected_origins = table[seen] / table.sum() * origins.sum()
     assert origins[~seen].sum() == 0
     pooled = expected_origins >= 5
-    observed = np.append(origins[seen][pooled], origins[seen][~pooled].sum())
-    wanted = np.append(expected_origins[pooled], expected_origins[~pooled].sum())
+    observed, wanted = origins[seen][pooled], expected_origins[pooled]
+    if (~pooled).any():
+        observed = np.append(observed, origins[seen][~pooled].sum())
+        wanted = np.append(wanted, expected_origins[~pooled].sum())
     assert scipy_stats.chisquare(observed, wanted).pvalue > 1e-4
 
 
@@ -247,6 +271,66 @@ def test_a_missing_or_corrupt_table_is_a_one_line_error(tmp_path: Path) -> None:
 
 
 @pytest.mark.unit
+def test_a_custom_city_with_manhattans_table_is_manhattan(tmp_path: Path) -> None:
+    table = tmp_path / "mine.npz"
+    shutil.copyfile(MANHATTAN_TABLE, table)
+    mine = make_env("dispatch:custom-40-mid", city_file=str(table), episode_minutes=20)
+    manhattan = make_env("dispatch:manhattan-40-mid", episode_minutes=20)
+    assert mine.spec.env_id == "dispatch:custom-40-mid"
+    trace_mine, trace_manhattan = (rollout(env, jax.random.PRNGKey(7), 20)
+                                   for env in (mine, manhattan))
+    for a, b in zip(jax.tree.leaves(trace_mine), jax.tree.leaves(trace_manhattan)):
+        np.testing.assert_array_equal(a, b)
+
+
+def bad_tables() -> dict[str, dict[str, np.ndarray]]:
+    """City tables that are wrong each in one way, from a well-formed one of 6 zones."""
+    good = {"demand": np.ones((2, 6, 6)), "travel_minutes": np.full((1, 6, 6), 3.0),
+            "coords": np.linspace(0, 1, 12).reshape(6, 2)}
+    return {
+        "four zones": {key: value[..., :4, :4] if key != "coords" else value[:4]
+                       for key, value in good.items()},
+        "coords outside [0, 1]": {**good, "coords": good["coords"] * 2},
+        "zones that disagree": {**good, "demand": np.ones((2, 7, 7))},
+        "no demand": {**good, "demand": np.zeros((2, 6, 6))},
+        "negative demand": {**good, "demand": -good["demand"]},
+        "no slot": {**good, "demand": np.ones((0, 6, 6))},
+        "zero travel": {**good, "travel_minutes": np.zeros((1, 6, 6))},
+        "a NaN": {**good, "travel_minutes": np.full((1, 6, 6), np.nan)},
+        "no coords": {key: value for key, value in good.items() if key != "coords"},
+        "flat travel": {**good, "travel_minutes": np.full((6, 6), 3.0)},
+    }
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("kind", list(bad_tables()))
+def test_a_custom_citys_table_wrong_in_any_way_is_a_one_line_error(kind: str,
+                                                                   tmp_path: Path) -> None:
+    table = tmp_path / "city.npz"
+    np.savez(table, **bad_tables()[kind])
+    with pytest.raises(CmatError, match=f"the city table {table} is corrupt") as error:
+        make_env("dispatch:custom-10-mid", city_file=str(table))
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.unit
+def test_a_custom_city_needs_its_file_and_only_it_takes_one(tmp_path: Path) -> None:
+    for env_id, kwargs, message in [
+        ("dispatch:custom-10-mid", {}, "a custom city needs its table: --set "
+                                       "env_kwargs.city_file=PATH"),
+        ("dispatch:custom-10-mid", {"city_file": str(tmp_path / "absent.npz")},
+         f"the city table {tmp_path / 'absent.npz'} is missing: give env_kwargs.city_file"),
+        ("dispatch:grid-10-mid", {"city_file": "x.npz"}, "'city_file' belongs to the custom city"),
+        ("dispatch:custom-10-mid", {"hot_spots": 2}, "'hot_spots' belongs to the grid city"),
+    ]:
+        with pytest.raises(CmatError, match=re.escape(message)):
+            make_env(env_id, **kwargs)
+    table = random_city_table(tmp_path / "city.npz", seed=0)
+    env = make_env("dispatch:custom-10-mid", city_file=str(table))
+    assert env.city.num_zones == 9 and env.spec.num_agents == 10
+
+
+@pytest.mark.unit
 def test_grid_city_neighbours_are_adjacent_zones() -> None:
     city = grid_city(size=4)
     travel = city.travel_minutes[0]
@@ -310,9 +394,21 @@ def test_cmat_eval_runs_a_baseline_like_a_trained_policy(
         (["--baseline", "greedy"], "exactly one of --env ID and --run DIR"),
         (["--baseline", "greedy", "--env", "dispatch:grid-10-high", "--episodes", "0"],
          "--episodes must be in"),
+        (["--baseline", "greedy", "--env", "dispatch:custom-10-high"],
+         "a custom city needs its table"),
+        (["--baseline", "greedy", "--env", "dispatch:grid-10-high", "--set", "ppo.lr=1"],
+         "takes the task's options (env_kwargs.NAME=VALUE) only, got 'ppo.lr=1'"),
     ):
         assert main(["eval", *argv]) == 2
         assert message in capsys.readouterr().err
+    table = random_city_table(tmp_path / "city.npz", seed=1)
+    assert main(["eval", "--baseline", "hungarian", "--env", "dispatch:custom-10-high",
+                 "--set", f"env_kwargs.city_file={table}", "env_kwargs.episode_minutes=10",
+                 "--episodes", "2"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["env"] == "dispatch:custom-10-high"
+    assert printed["per_seed"][0]["conflicts_per_step"] == 0
+    assert 0 < printed["per_seed"][0]["service_rate"] <= 1
 
 
 @pytest.mark.slow

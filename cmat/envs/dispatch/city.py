@@ -1,13 +1,15 @@
 """Cities of the dispatch suite: zones, travel times, repositioning neighbours and demand.
 
 A city is static data (numpy arrays) that `cmat.envs.dispatch.env.DispatchEnv` turns into JAX
-constants. Two cities exist:
+constants. Three cities exist:
 
 - `grid_city`: a synthetic square grid of zones with demand hot spots, built from numbers alone;
   the default for tests and for users without the Manhattan table.
 - `manhattan_city`: the 61 Manhattan taxi zones, with demand and travel times derived from the
   DIMACS ride-hailing challenge's data (PyPI `pyhailing` 0.0.9, Apache-2.0) by
   `scripts/dispatch_manhattan_table.py` into `data/manhattan.npz` (see `data/README.md`).
+- `table_city`: an operator's own city from a table of the same format (`CITY_TABLE_KEYS`),
+  the task `dispatch:custom-N-LEVEL` with `env_kwargs.city_file=PATH`.
 
 Times are whole minutes (one environment step is one minute), demand is relative: the
 environment scales it to the fleet's demand level (orders per vehicle-hour).
@@ -26,6 +28,13 @@ from cmat.errors import CmatError
 
 MANHATTAN_TABLE = Path(__file__).parent / "data" / "manhattan.npz"
 """The derived Manhattan table shipped with the package (`data/README.md`)."""
+
+CITY_TABLE_KEYS = ("demand", "travel_minutes", "coords")
+"""The arrays of a city table (`np.savez(path, demand=..., travel_minutes=..., coords=...)`):
+`demand` [S, Z, Z] relative order rates from origin to destination zone in each of S equal slots
+of the day (S ≥ 1; 96 quarter hours for Manhattan), `travel_minutes` [H, Z, Z] driving minutes in
+each of H equal parts of the day (H ≥ 1; rounded to whole minutes, at least 1), `coords` [Z, 2]
+zone positions in [0, 1]², at least 5 zones."""
 
 NEIGHBOURS = 4
 """Repositioning targets per zone: the 4 zones nearest by travel time (a grid zone's 4-
@@ -130,30 +139,46 @@ def manhattan_city(path: Path = MANHATTAN_TABLE) -> City:
     (rounded to whole minutes, at least 1), repositioning to the 4 zones nearest by travel time.
 
     Raises CmatError naming the file where it is missing, unreadable or malformed."""
+    return table_city(path, "manhattan", "the Manhattan demand table",
+                      "build it with python scripts/dispatch_manhattan_table.py, or use a grid "
+                      "task")
+
+
+def table_city(path: Path, name: str = "custom", what: str = "the city table",
+               remedy: str = "give env_kwargs.city_file the path of an .npz with demand, "
+                             "travel_minutes and coords (docs/dispatch.md)") -> City:
+    """The city of the table at `path` (`CITY_TABLE_KEYS`), repositioning to the
+    `NEIGHBOURS` zones nearest by the day's mean travel time.
+
+    Raises CmatError naming the file (as `what`) where it is missing (with `remedy`),
+    unreadable, or malformed: missing arrays, shapes that disagree on Z, fewer than 5 zones,
+    negative, infinite or all-zero demand, travel minutes not above 0, positions outside
+    [0, 1]²."""
     try:
         with np.load(path) as table:
             demand = np.asarray(table["demand"], dtype=np.float32)
             travel = np.asarray(table["travel_minutes"], dtype=np.float32)
             coords = np.asarray(table["coords"], dtype=np.float32)
     except FileNotFoundError:
-        raise CmatError(
-            f"the Manhattan demand table {path} is missing: build it with "
-            f"python scripts/dispatch_manhattan_table.py, or use a grid task"
-        ) from None
+        raise CmatError(f"{what} {path} is missing: {remedy}") from None
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as error:
-        raise CmatError(f"the Manhattan demand table {path} is corrupt ({error})") from None
+        raise CmatError(f"{what} {path} is corrupt ({error})") from None
     zones = coords.shape[0] if coords.ndim == 2 else -1
     well_formed = (
-        demand.ndim == 3 and demand.shape[1:] == (zones, zones)
-        and travel.ndim == 3 and travel.shape[1:] == (zones, zones) and coords.shape[1:] == (2,)
+        zones > NEIGHBOURS and coords.shape[1:] == (2,)
+        and demand.ndim == 3 and demand.shape[0] > 0 and demand.shape[1:] == (zones, zones)
+        and travel.ndim == 3 and travel.shape[0] > 0 and travel.shape[1:] == (zones, zones)
         and np.isfinite(demand).all() and (demand >= 0).all() and demand.sum() > 0
         and np.isfinite(travel).all() and (travel > 0).all()
+        and np.isfinite(coords).all() and (coords >= 0).all() and (coords <= 1).all()
     )
     if not well_formed:
         raise CmatError(
-            f"the Manhattan demand table {path} is corrupt (shapes demand {demand.shape}, "
-            f"travel_minutes {travel.shape}, coords {coords.shape}, or values out of range)"
+            f"{what} {path} is corrupt (shapes demand {demand.shape}, travel_minutes "
+            f"{travel.shape}, coords {coords.shape}, or values out of range: "
+            f"{', '.join(CITY_TABLE_KEYS)} as [S, Z, Z], [H, Z, Z], [Z, 2] with Z >= "
+            f"{NEIGHBOURS + 1}, demand >= 0 and not all 0, travel > 0, coords in [0, 1])"
         )
     minutes = np.maximum(np.rint(travel), 1).astype(np.int32)
     neighbours, mask = nearest_neighbours(minutes)
-    return City("manhattan", minutes, coords, neighbours, mask, demand)
+    return City(name, minutes, coords, neighbours, mask, demand)
