@@ -57,8 +57,8 @@ def make_task(name: str, **options: Any) -> DispatchEnv:
     if size > 5000:
         raise CmatError(f"dispatch:{name}: at most 5000 vehicles, got {size}")
     for other, own in CITY_OPTIONS.items():
-        wrong = sorted(set(options) & set(own)) if other != city_name else []
-        if wrong:
+        wrong = sorted(set(options) & set(own))
+        if other != city_name and wrong:
             raise CmatError(f"dispatch:{name}: option {wrong[0]!r} belongs to the {other} city")
     if city_name == "grid":
         city = grid_city(size=options.pop("grid_size", 8), hot_spots=options.pop("hot_spots", 3),
