@@ -18,6 +18,7 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -37,6 +38,7 @@ from cmat.experiments.lines import (
     matching_suite_aggregates,
 )
 from cmat.experiments.plan import FINISHED, cell_seed_groups, make_plan, schedule
+from cmat.experiments.report import task_steps
 from cmat.experiments.runner import run_experiment
 from cmat.experiments.spec import load_spec, spec_names
 from cmat.experiments.statistics import aggregate, improvement_probability, iqm
@@ -790,6 +792,29 @@ def test_a_variant_restricted_to_some_envs_plans_and_aggregates_only_there(
     beside_a_benchmark = aggregate(lines, metrics, spec)
     assert beside_a_benchmark is not None and beside_a_benchmark["tasks"] == ["smax:3m"]
     assert beside_a_benchmark["lines"]["MAT"]["mean"] == pytest.approx(0.25)
+
+
+def test_a_tasks_row_states_the_budget_of_its_lines_not_of_a_longer_variant(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "long.yaml"
+    path.write_text(yaml.safe_dump({
+        "steps": 100, "envs": ["matrix:fig1", "matrix:penalty"], "algos": ["cmat", "mat"],
+        "variants": {"default": {}, "long": {"algos": ["mat"], "steps": 400},
+                     "stage": {"algos": ["cmat"], "from": "default", "finetune": "consensus",
+                               "steps": 50}},
+    }))
+    spec = load_spec(path)
+    fig1, penalty = spec.envs
+
+    def line(variant: str, budgets: list[int]) -> Line:
+        runs = [SimpleNamespace(config=SimpleNamespace(budget_steps=b)) for b in budgets]
+        return Line(variant, variant, "mat", ("main",), runs, [])  # type: ignore[arg-type]
+
+    assert task_steps(fig1, [line("default", [128, 128]), line("long", [512]),
+                             line("stage", [64])], spec) == 128
+    assert task_steps(penalty, [line("long", [512])], spec) == 100
+    assert task_steps(penalty, [], spec) == 100
 
 
 def test_the_ablation_draws_the_tasks_its_variants_are_compared_on(tmp_path: Path) -> None:

@@ -41,6 +41,7 @@ from cmat.experiments.lines import (
 from cmat.experiments.markdown import markdown
 from cmat.experiments.marl_eval import marl_eval_data
 from cmat.experiments.plan import Plan, Run
+from cmat.experiments.spec import EnvEntry, ExperimentSpec
 from cmat.experiments.statistics import aggregate
 from cmat.rundir import RunDir
 
@@ -68,6 +69,17 @@ def write_report(plan: Plan) -> list[Path]:
                                                        "marl_eval.json"))]
 
 
+def task_steps(env: EnvEntry, lines: list[Line], spec: ExperimentSpec) -> int:
+    """The env steps a task's table row states: the budget its runs trained, a run rounding
+    the task's `steps` up to whole updates; variants with `steps` of their own (a longer-budget
+    line) and fine-tuning stages state theirs in their labels, so they do not count. The
+    task's `steps` where none of those runs is complete."""
+    own_budget = {v.name for v in spec.variants if v.steps is None and v.finetune is None}
+    trained = [run.config.budget_steps for line in lines if line.variant in own_budget
+               for run in line.runs if run.config is not None]
+    return max(trained) if trained else env.steps
+
+
 def summarise(
     plan: Plan, lines: dict[str, list[Line]], metrics: dict[str, str],
     references: list[dict[str, Any]],
@@ -75,10 +87,7 @@ def summarise(
     tasks = []
     for env in plan.spec.envs:
         metric = metrics[env.id]
-        trained = [run.config for line in lines.get(env.id, []) for run in line.runs
-                   if run.config is not None and run.config.finetune is None]
-        steps = (max(c.budget_steps for c in trained) if trained
-                 else env.steps)  # a run rounds its budget up to whole updates
+        steps = task_steps(env, lines.get(env.id, []), plan.spec)
         entry: dict[str, Any] = {"env": env.id, "label": env.label, "metric": metric,
                                  "steps": steps, "lines": {}}
         if env.id in plan.unavailable:
