@@ -544,6 +544,18 @@ SPEC = {"steps": 100, "envs": ["matrix:fig1"], "algos": ["cmat"]}
         ({"set": ["ppo.nope=1"]},
          "matrix:fig1 / default / cmat: invalid config: unknown key ppo.nope"),
         ({"set": {"cmat": {"consensus_iterations": "3n"}}}, "must be >= 0, got '3n'"),
+        ({"set": {"mat": {"inducing_points": 4}}},
+         "set: mat.inducing_points is an option of mat, and none of the runs it applies to "
+         "trains mat"),
+        ({"algos": ["cmat", "mat"],
+          "variants": {"a": {"algos": ["cmat"]},
+                       "b": {"algos": ["cmat"], "set": ["mat.inducing_points=2"]}}},
+         "variants.b.set: mat.inducing_points is an option of mat, and none of the runs"),
+        ({"algos": ["cmat", "mat"],
+          "envs": ["matrix:fig1", {"id": "matrix:penalty", "set": {"mat": {"inducing_points": 2}}}],
+          "variants": {"a": {"algos": ["cmat"]},
+                       "b": {"algos": ["mat"], "envs": ["matrix:fig1"]}}},
+         "envs[1].set: mat.inducing_points is an option of mat, and none of the runs"),
         ({"variants": {"ft": {"finetune": "action"}}}, "needs both 'from' (a variant) and"),
         ({"variants": {"a": {}, "ft": {"from": "b", "finetune": "action"}}},
          "from names no variant: 'b'"),
@@ -815,6 +827,27 @@ def test_a_tasks_row_states_the_budget_of_its_lines_not_of_a_longer_variant(
                              line("stage", [64])], spec) == 128
     assert task_steps(penalty, [line("long", [512])], spec) == 100
     assert task_steps(penalty, [], spec) == 100
+
+
+def test_an_algorithms_options_in_a_shared_set_apply_to_its_runs_alone(tmp_path: Path) -> None:
+    path = tmp_path / "scoped.yaml"
+    path.write_text(yaml.safe_dump({
+        "steps": 100, "envs": ["matrix:fig1", {"id": "matrix:penalty",
+                                               "set": {"mat": {"inducing_points": 2}}}],
+        "algos": ["cmat", "mat"],
+        "set": {"cmat": {"consensus_iterations": 1}, "ppo": {"epochs": 3}},
+        "variants": {"default": {},
+                     "m0": {"algos": ["cmat"], "set": ["cmat.consensus_iterations=0"]}},
+    }))
+    runs = {run.name: run.config for run in make_plan(load_spec(path), tmp_path / "out").runs}
+    assert all(config is not None and config.ppo.epochs == 3 for config in runs.values())
+    cmat_m = {name: config.options.consensus_iterations for name, config in runs.items()
+              if config is not None and config.algo == "cmat"}
+    assert cmat_m == {"matrix_fig1/default/cmat-s0": 1, "matrix_penalty/default/cmat-s0": 1,
+                      "matrix_fig1/m0/cmat-s0": 0, "matrix_penalty/m0/cmat-s0": 0}
+    mat_points = {name: config.options.inducing_points for name, config in runs.items()
+                  if config is not None and config.algo == "mat"}
+    assert mat_points == {"matrix_fig1/default/mat-s0": 0, "matrix_penalty/default/mat-s0": 2}
 
 
 def test_the_ablation_draws_the_tasks_its_variants_are_compared_on(tmp_path: Path) -> None:

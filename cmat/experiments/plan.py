@@ -32,7 +32,7 @@ from cmat.algorithms.cmat.options import CMATOptions
 from cmat.config import TrainConfig
 from cmat.envs import probe_env
 from cmat.errors import CmatError
-from cmat.experiments.spec import EnvEntry, ExperimentSpec, Variant
+from cmat.experiments.spec import EnvEntry, ExperimentSpec, Variant, for_algorithm
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners.finetune import finetune_config
@@ -232,12 +232,14 @@ def make_run(
         if variant.finetune is not None:
             assert base is not None and base.config is not None
             run.config, _ = finetune_config(base.config, base.path, variant.finetune,
-                                            variant.steps or env.steps, variant.overrides)
+                                            variant.steps or env.steps,
+                                            for_algorithm(variant.overrides, algo))
         else:
             explicit = [f"env={env.id}", f"algo={algo}",
                         f"total_steps={variant.steps or env.steps}", f"seeds={seeds}",
                         f"seed={seed}"]
-            run.overrides = (*spec.overrides, *env.overrides, *variant.overrides, *explicit)
+            run.overrides = (*for_algorithm((*spec.overrides, *env.overrides,
+                                             *variant.overrides), algo), *explicit)
             run.config = load_config(None, run.overrides)
     except CmatError as error:
         raise CmatError(f"{where}: {error}") from None

@@ -154,6 +154,13 @@ def load_spec(path: Path | str) -> ExperimentSpec:
     idle = [env_id for env_id in ids if not any(v.covers(env_id) for v in variants)]
     if idle:
         raise CmatError(f"{where}: no variant runs on {idle[0]!r} (see the variants' envs)")
+    spec_overrides = overrides(raw.get("set"), f"{where}: set")
+    check_sections(spec_overrides, {a for v in variants for a in v.algos}, f"{where}: set")
+    for i, env in enumerate(envs):
+        check_sections(env.overrides, {a for v in variants if v.covers(env.id) for a in v.algos},
+                       f"{where}: envs[{i}].set")
+    for v in variants:
+        check_sections(v.overrides, set(v.algos), f"{where}: variants.{v.name}.set")
     return ExperimentSpec(
         name=str(raw.get("name") or path.stem),
         path=path,
@@ -163,7 +170,7 @@ def load_spec(path: Path | str) -> ExperimentSpec:
         seeds=seeds,
         seed=seed,
         seeds_per_run=min(seeds_per_run, seeds),
-        overrides=overrides(raw.get("set"), f"{where}: set"),
+        overrides=spec_overrides,
         bootstrap_reps=positive_int(raw.get("bootstrap_reps", 2000), f"{where}: bootstrap_reps"),
         score_window=fraction(raw.get("score_window", 0.0), f"{where}: score_window"),
         baselines=baseline_list(raw.get("baselines"), ids, f"{where}: baselines"),
@@ -302,6 +309,30 @@ def overrides(value: Any, where: str) -> tuple[str, ...]:
     if isinstance(value, list) and all(isinstance(item, str) and "=" in item for item in value):
         return tuple(value)
     raise CmatError(f"{where} must be a mapping or a list of key=value strings")
+
+
+def algorithm_section(override: str) -> str | None:
+    """The algorithm whose options section `override` (`key=value`) sets (`cmat` for
+    `cmat.consensus_iterations=2`), or None for a setting every algorithm has."""
+    section = override.partition("=")[0].partition(".")[0]
+    return section if section in algorithm_names() else None
+
+
+def for_algorithm(settings: tuple[str, ...], algo: str) -> tuple[str, ...]:
+    """The `settings` that apply to a run of `algo`: a setting in another algorithm's options
+    section applies to that algorithm's runs only, so one spec-level `set` can give CMAT its m
+    beside MAT and MAPPO."""
+    return tuple(item for item in settings if algorithm_section(item) in (None, algo))
+
+
+def check_sections(settings: tuple[str, ...], algos: set[str], where: str) -> None:
+    """CmatError where a setting names the options of an algorithm that no run in its scope
+    trains (it would apply to nothing)."""
+    for item in settings:
+        section = algorithm_section(item)
+        if section is not None and section not in algos:
+            raise CmatError(f"{where}: {item.partition('=')[0]} is an option of {section}, "
+                            f"and none of the runs it applies to trains {section}")
 
 
 def flatten(mapping: dict[Any, Any], prefix: str = "") -> list[tuple[str, Any]]:
