@@ -143,20 +143,26 @@ def test_explain_lists_every_layer_of_a_key_and_the_last_wins(
 
 @pytest.mark.unit
 def test_an_algorithms_section_is_named_by_it_and_explained_layer_by_layer() -> None:
-    """The dispatch suite sets m for CMAT only (`cmat:` in its settings); the paper preset
-    and the command line set it again; another algorithm's run never sees that section."""
+    """The dispatch suite sets Sable's retention chunk only (`sable:` in its settings) and
+    the command line sets it again; the paper preset and the command line set CMAT's m; another
+    algorithm's run never sees those sections."""
     from cmat.resolve import explain, resolve_config
 
+    overrides = ["env=dispatch:grid-100-mid", "algo=sable", "sable.retention_chunk=2"]
+    assert explain("sable.retention_chunk", None, overrides) == [
+        ("default", None), ("suite dispatch", 1), ("command line", 2)]
+    config, sources = resolve_config(None, overrides)
+    assert config.options.retention_chunk == 2
+    assert sources["sable.retention_chunk"] == "command line"
     overrides = ["env=dispatch:grid-100-mid", "preset=paper", "cmat.consensus_iterations=3"]
-    rows = explain("cmat.consensus_iterations", None, overrides)
-    assert rows == [("default", None), ("suite dispatch", 5), ("preset paper", "n"),
-                    ("command line", 3)]
+    assert explain("cmat.consensus_iterations", None, overrides) == [
+        ("default", None), ("preset paper", "n"), ("command line", 3)]
     config, sources = resolve_config(None, overrides)
     assert config.options.consensus_iterations == 3
     assert sources["cmat.consensus_iterations"] == "command line"
     mat, sources = resolve_config(None, ["env=dispatch:grid-100-mid", "algo=mat"])
     assert type(mat.options).__name__ == "MATOptions"
-    assert not any(name.startswith("cmat.") for name in sources)
+    assert not any(name.startswith(("cmat.", "sable.")) for name in sources)
 
 
 @pytest.mark.unit

@@ -61,13 +61,16 @@ averages, are 32 envs here; agent ids on (`add_agent_id: True`)."""
 
 DISPATCH_SETTINGS: dict[str, Any] = {
     "rollout_length": 30, "num_envs": 4, "total_steps": 200_000, "eval_episodes": 8,
-    "eval_actions": "sample", "cmat": {"consensus_iterations": 5}, "sable": {"retention_chunk": 1},
+    "eval_actions": "sample", "sable": {"retention_chunk": 1},
     "ppo": {"lr": 5e-4, "adam_eps": 1e-5, "epochs": 5, "num_minibatches": 1, "clip_eps": 0.2,
             "ent_coef": 0.01, "max_grad_norm": 10.0},
 }
 """The dispatch suite (`cmat.envs.dispatch`): 4 environments × 30 one-minute steps per update
-(12,000 vehicle decisions at 100 vehicles), m = 5 consensus iterations (the CMAT authors'
-ride-sharing code ran 1,000 vehicles with consensus length 5), 5 epochs at clip 0.2. Measured
+(12,000 vehicle decisions at 100 vehicles), 5 epochs at clip 0.2. CMAT's consensus iterations
+follow its large-team rule (`cmat.algorithms.cmat.options.LARGE_TEAM`: m = 2 for fleets of
+more than 32 vehicles), which scored highest against m = 1, 5 (the CMAT authors' ride-sharing
+code ran 1,000 vehicles with consensus length 5) and 10 on grid-100-mid (docs/dispatch.md);
+the committed `dispatch` grid pins m = 5 in its spec, as it was trained. Measured
 on dispatch:grid-100-mid (one seed each, docs/dispatch.md): at 24k steps, 4 × 30 reached a
 greedy return of 22.1–22.4 with MAPPO and CMAT, where 8 × 60 (one whole episode per rollout)
 was at 13–22 after 48k. The budget is per seed in environment steps (fleet minutes).
@@ -155,9 +158,8 @@ SUITES: dict[str, Suite] = {
                     requires=("brax", "pip install 'brax>=0.14.2,<0.15' (cmat's mabrax extra)")),
     "dispatch": Suite("dispatch:CITY-N-LEVEL (e.g. dispatch:grid-100-mid)",
                       "cmat.envs.dispatch:build", DISPATCH_SETTINGS,
-                      "cmat's dispatch suite: half an episode per rollout, m = 5 as in the CMAT "
-                      "authors' ride-sharing code; budget and PPO settings measured "
-                      "(DISPATCH_SETTINGS)"),
+                      "cmat's dispatch suite: half an episode per rollout; budget and PPO "
+                      "settings measured (DISPATCH_SETTINGS)"),
     "jax": Suite("jax:package.module:factory (your own)", "cmat.envs.user_jax:build",
                  {"total_steps": PAPER_BUDGET},
                  "a user's JAX env: the dataclass defaults; the paper's 1e7 steps"),
