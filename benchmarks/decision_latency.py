@@ -15,17 +15,17 @@ batch). A point that fails or passes `--timeout` seconds (compile included) is r
 the reason.
 
 Lines: 'cmat m=n' is the paper's setting (m = number of agents), 'cmat m=2' what cmat runs on
-teams above 32 agents when m is unset (`cmat.algorithms.cmat.options.LARGE_TEAM`), 'cmat m=5'
-the dispatch suite's setting (the CMAT authors' ride-sharing code used consensus length 5 on
-1,000 vehicles); 'sable' is the recurrent Sable (one decision from its initial memory), 'sable
-(feed-forward)' Mava's ff_sable (results dated before 2026-12-06 call the feed-forward one
-'sable'); 'mat' and both Sables decode the agents one after another,
-'mappo' is one MLP per agent (fully parallel).
+teams above 32 agents when m is unset (`cmat.algorithms.cmat.options.LARGE_TEAM`; the dispatch
+suite's setting since 2026-12-08), 'cmat m=2 k=16' the same with inducing points, 'cmat m=5'
+the CMAT authors' ride-sharing setting (consensus length 5 on 1,000 vehicles); 'sable' is the
+recurrent Sable (one decision from its initial memory), 'sable (feed-forward)' Mava's ff_sable
+(results dated before 2026-12-06 call the feed-forward one 'sable'); 'mat' and both Sables
+decode the agents one after another, 'mappo' is one MLP per agent (fully parallel).
 
 Writes DIR/decision_latency.json after each point (a run cut short keeps what it measured),
 then DIR/decision_latency.png and DIR/decision_latency.md, and prints the table with the
 machine's line and, at the largest team every line reached, each line's median against
-'cmat m=5'.
+'cmat m=2'.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ LINES = {
     "sable (feed-forward)": ("ff_sable", []),
     "mappo": ("mappo", []),
 }
-REFERENCE = "cmat m=5"
+REFERENCE = "cmat m=2"
 
 POINT = r"""
 import json, statistics, sys, time
