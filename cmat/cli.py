@@ -159,6 +159,17 @@ def build_parser() -> argparse.ArgumentParser:
                         help="animation to write (.gif; .mp4 needs ffmpeg)")
     render.set_defaults(handler=render_command)
 
+    export = commands.add_parser(
+        "export", help="one seed's policy from a run, saved for deployment: config and "
+                       "parameters, which cmat.load_policy(DIR) acts from")
+    export.add_argument("--run", type=Path, required=True, metavar="DIR", help="run directory")
+    export.add_argument("--seed", type=int, help="which of the run's seeds (default: its first)")
+    export.add_argument("--checkpoint", type=checkpoint_argument, default="latest",
+                        metavar="WHICH", help=CHECKPOINT_HELP)
+    export.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="the new directory to write (must not exist)")
+    export.set_defaults(handler=export_command)
+
     plot = commands.add_parser("plot", help="evaluation curves of run directories")
     plot.add_argument("runs", type=Path, nargs="+", metavar="DIR", help="run directories")
     plot.add_argument("--out", type=Path, required=True, metavar="FILE.png", help="image to write")
@@ -500,6 +511,18 @@ def render_command(args: argparse.Namespace) -> None:
     frames = render_episodes(policy, args.out, args.episodes, policy.seed, args.fps,
                              args.max_steps)
     print(f"wrote {args.out} ({frames} frames, seed {policy.seed})")
+
+
+def export_command(args: argparse.Namespace) -> None:
+    from cmat.policy import load_policy
+
+    if args.out.exists() or args.out.is_symlink():
+        raise CmatError(f"{args.out} already exists; a policy is saved to a new directory")
+    policy = load_policy(args.run, args.seed, args.checkpoint)
+    policy.save(args.out)
+    size = sum(file.stat().st_size for file in args.out.iterdir())
+    print(f"wrote {args.out}: {policy.config.algo} on {policy.config.env}, seed {policy.seed}, "
+          f"{policy.env_steps:,} env steps, {size / 1e6:.2f} MB")
 
 
 def plot_command(args: argparse.Namespace) -> None:

@@ -4,6 +4,8 @@ and the PettingZoo loop of docs/policies.md reaches the optimum of a game the ru
 from __future__ import annotations
 
 import re
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -155,6 +157,78 @@ def test_runs_that_cannot_be_loaded_are_one_error(smax_run: Path, tmp_path: Path
         (smax_run / "checkpoints" / "latest.ckpt").read_bytes())
     with pytest.raises(CmatError, match=r"shapes differ.*written by cmat 0\.0\.1"):
         cmat.load_policy(other)
+
+
+def test_an_exported_policy_acts_as_the_runs_and_carries_one_seed(
+    smax_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "shipped"
+    assert main(["export", "--run", str(smax_run), "--seed", "6", "--checkpoint", "best",
+                 "--out", str(out)]) == 0
+    assert f"wrote {out}: cmat on smax:3m, seed 6" in capsys.readouterr().out
+    original = cmat.load_policy(smax_run, seed=6, checkpoint="best")
+    shipped = cmat.load_policy(out)
+    assert (shipped.seed, shipped.env_steps, shipped.spec) == (
+        original.seed, original.env_steps, original.spec)
+    assert shipped.config == original.config
+    obs = jax.random.normal(jax.random.PRNGKey(3), (8, 3, original.spec.obs_dim))
+    mask = jax.random.bernoulli(jax.random.PRNGKey(4), 0.7, (8, 3, original.spec.action_dim))
+    mask = mask.at[..., 0].set(True)
+    key = jax.random.PRNGKey(9)
+    np.testing.assert_array_equal(shipped.greedy(obs, mask), original.greedy(obs, mask))
+    np.testing.assert_array_equal(shipped.act(obs, mask, key), original.act(obs, mask, key))
+    np.testing.assert_array_equal(shipped.log_probs(obs, mask), original.log_probs(obs, mask))
+    one_seed = (out / "policy.msgpack").stat().st_size
+    checkpoint = (smax_run / "checkpoints" / "best.ckpt").stat().st_size
+    assert one_seed < checkpoint / 4  # two seeds' parameters, Adam moments and target critic
+    assert cmat.load_policy(out, seed=6).seed == 6
+    assert main(["export", "--run", str(smax_run), "--out", str(out)]) == 2
+    assert "already exists; a policy is saved to a new directory" in capsys.readouterr().err
+
+
+def test_a_saved_policy_that_cannot_be_loaded_is_one_error(smax_run: Path, tmp_path: Path) -> None:
+    good = cmat.load_policy(smax_run, seed=5).save(tmp_path / "good")
+
+    def broken(name: str, edit: Callable[[Path], None]) -> Path:
+        copy = tmp_path / name
+        shutil.copytree(good, copy)
+        edit(copy)
+        return copy
+
+    with pytest.raises(CmatError, match="saved policy of seed 5; there is no seed 6"):
+        cmat.load_policy(good, seed=6)
+    with pytest.raises(CmatError, match="checkpoint 'best' is the run directory's choice"):
+        cmat.load_policy(good, checkpoint="best")
+
+    def flip_a_byte(path: Path) -> None:
+        data = bytearray((path / "policy.msgpack").read_bytes())
+        data[len(data) // 2] ^= 1
+        (path / "policy.msgpack").write_bytes(bytes(data))
+
+    with pytest.raises(CmatError, match="differs from the size and SHA-256 its header records"):
+        cmat.load_policy(broken("flipped", flip_a_byte))
+    with pytest.raises(CmatError, match="corrupt saved policy header"):
+        cmat.load_policy(broken("header", lambda p: (p / "policy.json").write_text("{")))
+    with pytest.raises(CmatError, match="format 'cmat-policy 0' is not 'cmat-policy 1'"):
+        cmat.load_policy(broken("format", lambda p: (p / "policy.json").write_text(
+            (p / "policy.json").read_text().replace("cmat-policy 1", "cmat-policy 0"))))
+    with pytest.raises(CmatError, match=r"cannot read .*policy\.msgpack"):
+        cmat.load_policy(broken("missing", lambda p: (p / "policy.msgpack").unlink()))
+
+    def other_width(path: Path, header_too: bool) -> None:
+        config = path / "config.yaml"
+        config.write_text(config.read_text().replace("n_embd: 64", "n_embd: 32"))
+        if header_too:
+            header = path / "policy.json"
+            header.write_text(header.read_text().replace('"n_embd": 64', '"n_embd": 32'))
+
+    with pytest.raises(CmatError, match=r"describes another network than the saved parameters "
+                                        r"\(n_embd: 32, saved 64\)"):
+        cmat.load_policy(broken("edited", lambda p: other_width(p, False)))
+    with pytest.raises(CmatError, match=r"policy\.msgpack does not fit the cmat network of"):
+        cmat.load_policy(broken("resized", lambda p: other_width(p, True)))
+    with pytest.raises(CmatError, match="already exists; a policy is saved to a new directory"):
+        cmat.load_policy(smax_run).save(good)
 
 
 SIGNAL = "pettingzoo:test_host_envs:signal_game"
