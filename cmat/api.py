@@ -288,6 +288,9 @@ def evaluate_run(
     if not 0 <= episode_seed <= INT32_MAX:
         raise CmatError(f"--seed must be in [0, {INT32_MAX:,}], got {episode_seed:,}")
     config = run_dir.config()
+    saved = saved_policy(run_dir, checkpoint)
+    if saved is not None:
+        config = dataclasses.replace(saved.config, seed=saved.seed, seeds=1)
     if actions is not None:
         if actions not in (*EVAL_ACTIONS, MATCHED):
             raise CmatError(f"actions must be 'greedy', 'sample' or 'matched', got {actions!r}")
@@ -304,10 +307,18 @@ def evaluate_run(
     from cmat.runners.base import restore_run
 
     trainer = build_trainer(config)
-    state, env_steps = restore_run(run_dir, trainer, checkpoint)
+    if saved is None:
+        state, env_steps = restore_run(run_dir, trainer, checkpoint)
+    else:
+        import jax
+
+        state, env_steps = trainer.init(), saved.env_steps
+        params = jax.tree.map(lambda leaf: leaf[None], saved.params)
+        state = dataclasses.replace(state, learner=dataclasses.replace(state.learner,
+                                                                       params=params))
     extra: dict[str, Any] = {
-        "checkpoint": checkpoint, "env_steps": env_steps, "budget_steps": config.budget_steps,
-        "complete": env_steps == config.budget_steps,
+        "checkpoint": checkpoint if saved is None else "saved policy", "env_steps": env_steps,
+        "budget_steps": config.budget_steps, "complete": env_steps == config.budget_steps,
     }
     if checkpoint == "best":
         extra["best_env_steps"] = (run_dir.checkpoint_header("best") or {})["best"]["env_steps"]
@@ -328,6 +339,20 @@ def evaluate_run(
         for index in range(config.seeds)
     ]
     return extra, per_seed
+
+
+def saved_policy(run_dir: RunDir, checkpoint: Checkpoint) -> Policy | None:
+    """The policy `run_dir` holds where it is one saved by `Policy.save` (`cmat export`), which
+    `cmat eval` evaluates as a run of its one seed; None for a run directory. CmatError for a
+    `checkpoint` other than the default, which only a run directory has to choose from."""
+    from cmat.policy import SAVED_HEADER, load_policy
+
+    if not (run_dir.path / SAVED_HEADER).is_file():
+        return None
+    if checkpoint != "latest":
+        raise CmatError(f"{run_dir.path} is a saved policy, one checkpoint; --checkpoint "
+                        f"chooses among a run directory's")
+    return load_policy(run_dir.path)
 
 
 MATCHED = "matched"

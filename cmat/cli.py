@@ -418,11 +418,14 @@ def eval_command(args: argparse.Namespace) -> None:
     if args.set:
         raise CmatError("--set applies to --baseline --env; a run is evaluated with its own "
                         "config")
+    from cmat.policy import SAVED_HEADER
+
     run_dir = RunDir.open(args.run)
     config = run_dir.config()
     episodes = args.episodes or config.eval_episodes
-    progress(f"evaluating {run_dir.path}: {episodes:,} episodes for each of {config.seeds} "
-             f"seed{'s' if config.seeds > 1 else ''} on {config.env} (compiling first) ...")
+    seeds = 1 if (run_dir.path / SAVED_HEADER).is_file() else config.seeds
+    progress(f"evaluating {run_dir.path}: {episodes:,} episodes for each of {seeds} "
+             f"seed{'s' if seeds > 1 else ''} on {config.env} (compiling first) ...")
     start = time.perf_counter()
     extra, per_seed = evaluate_run(run_dir, args.episodes, args.actions, args.seed,
                                    args.iterations, args.checkpoint)

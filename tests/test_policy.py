@@ -3,6 +3,7 @@ and the PettingZoo loop of docs/policies.md reaches the optimum of a game the ru
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from collections.abc import Callable
@@ -184,6 +185,21 @@ def test_an_exported_policy_acts_as_the_runs_and_carries_one_seed(
     assert cmat.load_policy(out, seed=6).seed == 6
     assert main(["export", "--run", str(smax_run), "--out", str(out)]) == 2
     assert "already exists; a policy is saved to a new directory" in capsys.readouterr().err
+
+    def evaluated(*args: str) -> dict:
+        assert main(["eval", "--episodes", "4", "--seed", "2", *args]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    run_rows = evaluated("--run", str(smax_run), "--checkpoint", "best")["per_seed"]
+    shipped_eval = evaluated("--run", str(out))
+    assert shipped_eval["checkpoint"] == "saved policy"
+    assert shipped_eval["env_steps"] == original.env_steps
+    assert shipped_eval["per_seed"] == [row for row in run_rows if row["seed"] == 6]
+    assert main(["eval", "--run", str(out), "--checkpoint", "best"]) == 2
+    assert "is a saved policy, one checkpoint" in capsys.readouterr().err
+    assert main(["render", "--run", str(out), "--max-steps", "3",
+                 "--out", str(tmp_path / "shipped.gif")]) == 0
+    assert "(3 frames, seed 6)" in capsys.readouterr().out
 
 
 def test_a_saved_policy_that_cannot_be_loaded_is_one_error(smax_run: Path, tmp_path: Path) -> None:
