@@ -89,6 +89,12 @@ def test_matched_decoding_never_conflicts_and_replays_its_episodes(
     row = cast(list[dict[str, float]], first["per_seed"])[0]
     assert row["conflicts_per_step"] == 0 and 0 < row["service_rate"] <= 1
     assert evaluated("--seed", "5", "--episodes", "2") == first
+    shipped = run.parent / "shipped"
+    assert main(["export", "--run", str(run), "--out", str(shipped)]) == 0
+    capsys.readouterr()
+    assert main(["eval", "--run", str(shipped), "--actions", "matched", "--seed", "5",
+                 "--episodes", "2"]) == 0
+    assert json.loads(capsys.readouterr().out.splitlines()[-1])["per_seed"] == first["per_seed"]
     assert main(["eval", "--run", str(run), "--actions", "matched", "--episodes",
                  "100001"]) == 2
     assert "--episodes must be in [1, 100,000]" in capsys.readouterr().err.splitlines()[-1]
