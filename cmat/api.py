@@ -184,6 +184,7 @@ def train(
         if any(value is not None for value in (env, algo, seeds, preset, config, out)) or settings:
             raise CmatError("resume takes no other option than steps")
         run_dir = RunDir.open(Path(resume))
+        run_dir.refuse_saved_policy()
         resumed = run_dir.config()
         if steps is not None:
             resumed = validate(dataclasses.replace(resumed, total_steps=steps))
@@ -312,6 +313,13 @@ def evaluate_run(
     else:
         import jax
 
+        differs = [field.name for field in dataclasses.fields(saved.spec)
+                   if getattr(trainer.env_spec, field.name) != getattr(saved.spec, field.name)]
+        if differs:
+            name = differs[0]
+            raise CmatError(f"{run_dir.path}: its config.yaml builds an environment with "
+                            f"{name} {getattr(trainer.env_spec, name)!r}, and the saved "
+                            f"parameters act on {name} {getattr(saved.spec, name)!r}")
         state, env_steps = trainer.init(), saved.env_steps
         params = jax.tree.map(lambda leaf: leaf[None], saved.params)
         state = dataclasses.replace(state, learner=dataclasses.replace(state.learner,
@@ -345,9 +353,9 @@ def saved_policy(run_dir: RunDir, checkpoint: Checkpoint) -> Policy | None:
     """The policy `run_dir` holds where it is one saved by `Policy.save` (`cmat export`), which
     `cmat eval` evaluates as a run of its one seed; None for a run directory. CmatError for a
     `checkpoint` other than the default, which only a run directory has to choose from."""
-    from cmat.policy import SAVED_HEADER, load_policy
+    from cmat.policy import load_policy
 
-    if not (run_dir.path / SAVED_HEADER).is_file():
+    if not run_dir.is_saved_policy:
         return None
     if checkpoint != "latest":
         raise CmatError(f"{run_dir.path} is a saved policy, one checkpoint; --checkpoint "
@@ -388,7 +396,8 @@ def evaluate_matched_run(
         figures = means(evaluate_matched(env, policy.log_probs, episodes, episode_seed))
         per_seed.append({"seed": policy.seed,
                          **{name: json_number(value) for name, value in figures.items()}})
-    extra = {"checkpoint": checkpoint, "env_steps": policies[0].env_steps,
+    extra = {"checkpoint": "saved policy" if run_dir.is_saved_policy else checkpoint,
+             "env_steps": policies[0].env_steps,
              "budget_steps": config.budget_steps, "complete": policies[0].complete,
              "episodes_per_seed": episodes, "actions": MATCHED, "episode_seed": episode_seed}
     return extra, per_seed

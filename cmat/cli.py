@@ -367,6 +367,7 @@ def train_command(args: argparse.Namespace) -> None:
             raise CmatError("--resume takes no other option than --steps")
         if args.dry_run:
             run_dir = RunDir.open(args.resume)
+            run_dir.refuse_saved_policy()
             config = run_dir.config()
             if args.steps is not None:
                 config = validate(dataclasses.replace(config, total_steps=args.steps))
@@ -418,12 +419,10 @@ def eval_command(args: argparse.Namespace) -> None:
     if args.set:
         raise CmatError("--set applies to --baseline --env; a run is evaluated with its own "
                         "config")
-    from cmat.policy import SAVED_HEADER
-
     run_dir = RunDir.open(args.run)
     config = run_dir.config()
     episodes = args.episodes or config.eval_episodes
-    seeds = 1 if (run_dir.path / SAVED_HEADER).is_file() else config.seeds
+    seeds = 1 if run_dir.is_saved_policy else config.seeds
     progress(f"evaluating {run_dir.path}: {episodes:,} episodes for each of {seeds} "
              f"seed{'s' if seeds > 1 else ''} on {config.env} (compiling first) ...")
     start = time.perf_counter()

@@ -14,8 +14,10 @@ spec's range (host adapters map them onto each agent's Box).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import hashlib
 import json
 import os
 import shutil
@@ -32,14 +34,13 @@ from cmat.algorithms.base import initial_memories, is_recurrent, with_memory
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
-from cmat.rundir import Checkpoint, RunDir
+from cmat.rundir import SAVED_POLICY_HEADER, Checkpoint, RunDir
 
 if TYPE_CHECKING:
     from cmat.algorithms.base import Algorithm
 
 SAVED_FORMAT = "cmat-policy 1"
 """`policy.json`'s `format`: the layout `Policy.save` writes and `load_policy` reads."""
-SAVED_HEADER = "policy.json"
 SAVED_PARAMS = "policy.msgpack"
 
 
@@ -128,34 +129,44 @@ class Policy:
         without the run: `config.yaml` (the run's config), `policy.msgpack` (these parameters,
         flax msgpack; one seed, no optimiser state) and `policy.json` (`SAVED_FORMAT`, the cmat
         version, seed, env steps, the `EnvSpec`, the network the parameters belong to, and the
-        parameters' size and SHA-256). CMAT's parameters for the 1,000-vehicle Manhattan fleet
-        take 0.57 MB. Returns the directory.
+        SHA-256 of the three together: `bundle_digest`). CMAT's parameters for the 1,000-vehicle
+        Manhattan fleet take 0.57 MB. Returns the directory.
 
-        Raises CmatError where `path` exists (nothing is replaced) or cannot be written; a
-        directory half-written by a failure is removed."""
+        Raises CmatError where `path` is not a path, exists (nothing is replaced) or cannot be
+        written; what a failure half-wrote, directories it created included, is removed."""
         from cmat.configfile import to_yaml
-        from cmat.rundir import atomic_write, network_record, sha256
+        from cmat.rundir import atomic_write, network_record
         from cmat.version import __version__
 
+        if not isinstance(path, (str, os.PathLike)):
+            raise CmatError(f"path must be a path, got {type(path).__name__}")
         target = Path(path)
         if target.exists() or target.is_symlink():
             raise CmatError(f"{target} already exists; a policy is saved to a new directory")
         data = flax.serialization.msgpack_serialize(
             flax.serialization.to_state_dict(jax.tree.map(np.asarray, self.params)))
-        header = {"format": SAVED_FORMAT, "cmat": __version__, "algo": self.config.algo,
-                  "env": self.config.env, "seed": self.seed, "env_steps": self.env_steps,
-                  "spec": dataclasses.asdict(self.spec), "network": network_record(self.config),
-                  "size": len(data), "sha256": sha256(data)}
+        config_text = to_yaml(self.config, None).encode()
+        header: dict[str, Any] = {
+            "format": SAVED_FORMAT, "cmat": __version__, "algo": self.config.algo,
+            "env": self.config.env, "seed": self.seed, "env_steps": self.env_steps,
+            "spec": dataclasses.asdict(self.spec), "network": network_record(self.config),
+            "size": len(data)}
+        header["sha256"] = bundle_digest(header, config_text, data)
+        created = [folder for folder in (target, *target.parents) if not folder.exists()]
         try:
             target.mkdir(parents=True)
-        except OSError as error:
-            raise CmatError(f"cannot create {target}: {error.strerror or error}") from None
-        try:
             atomic_write(target / SAVED_PARAMS, data)
-            atomic_write(target / "config.yaml", to_yaml(self.config, None).encode())
-            atomic_write(target / SAVED_HEADER, (json.dumps(header, indent=1) + "\n").encode())
-        except BaseException:
+            atomic_write(target / "config.yaml", config_text)
+            atomic_write(target / SAVED_POLICY_HEADER,
+                         (json.dumps(header, indent=1) + "\n").encode())
+        except BaseException as error:
             shutil.rmtree(target, ignore_errors=True)
+            for folder in created[1:]:
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
+            if isinstance(error, OSError):
+                raise CmatError(f"cannot write {error.filename or target}: "
+                                f"{error.strerror or error}") from None
             raise
         return target
 
@@ -295,7 +306,11 @@ def load_policy(
         raise CmatError(f"run_dir must be a path, got {type(run_dir).__name__}")
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
         raise CmatError(f"seed must be an int, got {type(seed).__name__} {seed!r}")
-    if (Path(run_dir) / SAVED_HEADER).is_file():
+    if not (checkpoint in ("latest", "best") or (
+            isinstance(checkpoint, int) and not isinstance(checkpoint, bool) and checkpoint >= 0)):
+        raise CmatError(f"checkpoint must be 'latest', 'best' or the env steps of a kept "
+                        f"checkpoint (an int), got {checkpoint!r}")
+    if RunDir(Path(run_dir)).is_saved_policy:
         return load_saved(Path(run_dir), seed, checkpoint)
     run = RunDir.open(Path(run_dir))
     config = run.config()
@@ -314,68 +329,111 @@ def load_policy(
                   jax.tree.map(jnp.asarray, params))
 
 
+def bundle_digest(header: dict[str, Any], config_text: bytes, params: bytes) -> str:
+    """SHA-256 of a saved policy's three parts together: `policy.json` without its `sha256`
+    (canonical JSON), `config.yaml` and `policy.msgpack`. An edit to any one of them, or parts
+    of two saved policies put together, no longer matches the digest `policy.json` records."""
+    fields = json.dumps({k: v for k, v in header.items() if k != "sha256"}, sort_keys=True)
+    return hashlib.sha256(b"\0".join((fields.encode(), config_text, params))).hexdigest()
+
+
 def load_saved(path: Path, seed: int | None, checkpoint: Checkpoint) -> Policy:
     """The policy `Policy.save` wrote to `path`. CmatError where `seed` or `checkpoint` ask
-    for another than it holds, where a file is missing, unreadable or corrupt (its size or
-    SHA-256 differ from the header's), where config.yaml and the header disagree on the network,
-    or where the parameters do not fit the network config.yaml describes."""
+    for another than it holds; where a file is missing or unreadable; where the three files do
+    not match the digest `policy.json` records (an edit, damage, or parts of two saved
+    policies); and where a header field has the wrong type, the parameters are not the
+    float32 arrays of the network `config.yaml` describes, or are not finite."""
     from cmat.algorithms import build_algorithm, check_config
     from cmat.configfile import from_yaml
-    from cmat.rundir import network_record, sha256
 
-    header_file = path / SAVED_HEADER
+    header_file, config_file, params_file = (path / SAVED_POLICY_HEADER, path / "config.yaml",
+                                             path / SAVED_PARAMS)
     try:
         header = json.loads(header_file.read_text())
-        if header.get("format") != SAVED_FORMAT:
-            raise CmatError(f"{header_file}: format {header.get('format')!r} is not "
-                            f"{SAVED_FORMAT!r}")
-        saved_seed, env_steps = int(header["seed"]), int(header["env_steps"])
-        spec_fields = dict(header["spec"])
-        spec_fields["episode_metrics"] = tuple(spec_fields.get("episode_metrics", ()))
-        spec = EnvSpec(**spec_fields)
-        size, digest, network = int(header["size"]), str(header["sha256"]), header["network"]
-    except CmatError:
-        raise
-    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError):
+    except (OSError, UnicodeDecodeError, ValueError):
         raise CmatError(f"corrupt saved policy header: {header_file}") from None
+    if not isinstance(header, dict):
+        raise CmatError(f"corrupt saved policy header: {header_file}")
+    if header.get("format") != SAVED_FORMAT:
+        raise CmatError(f"{header_file}: format {header.get('format')!r} is not "
+                        f"{SAVED_FORMAT!r}")
+    parts = []
+    for file in (config_file, params_file):
+        try:
+            parts.append(file.read_bytes())
+        except OSError:
+            raise CmatError(f"cannot read {file}") from None
+    config_text, data = parts
+    if bundle_digest(header, config_text, data) != header.get("sha256"):
+        raise CmatError(f"corrupt saved policy {path}: policy.json, config.yaml and "
+                        f"policy.msgpack are not the files saved together (their SHA-256 "
+                        f"differs from the one policy.json records)")
+    saved_seed, env_steps, spec = saved_fields(header, header_file)
     if seed is not None and int(seed) != saved_seed:
         raise CmatError(f"{path} is the saved policy of seed {saved_seed}; there is no seed "
                         f"{seed}")
     if checkpoint != "latest":
         raise CmatError(f"{path} is a saved policy, one checkpoint (env step {env_steps}); "
                         f"checkpoint {checkpoint!r} is the run directory's choice")
-    config_file = path / "config.yaml"
     try:
-        config = check_config(from_yaml(config_file.read_text()))
+        config = check_config(from_yaml(config_text.decode()))
     except CmatError as error:
         raise CmatError(f"{config_file}: {error}") from None
-    except (OSError, UnicodeDecodeError):
+    except UnicodeDecodeError:
         raise CmatError(f"cannot read {config_file}") from None
-    if network_record(config) != network:
-        changed = next(name for name in network if network_record(config).get(name)
-                       != network[name])
-        raise CmatError(f"{config_file} describes another network than the saved parameters "
-                        f"({changed}: {network_record(config).get(changed)!r}, saved "
-                        f"{network[changed]!r})")
-    params_file = path / SAVED_PARAMS
-    try:
-        data = params_file.read_bytes()
-    except OSError:
-        raise CmatError(f"cannot read {params_file}") from None
-    if len(data) != size or sha256(data) != digest:
-        raise CmatError(f"corrupt saved policy: {params_file} differs from the size and SHA-256 "
-                        f"its header records")
+    if (config.algo, config.env) != (header.get("algo"), header.get("env")):
+        raise CmatError(f"{config_file} is a {config.algo} run on {config.env}, and "
+                        f"{header_file} a {header.get('algo')} policy on {header.get('env')}")
     algorithm = build_algorithm(config.algo, config.network, spec, config.ppo, config.options)
     template = jax.eval_shape(algorithm.init, jax.random.PRNGKey(0),
                               jnp.zeros((spec.num_agents, spec.obs_dim), jnp.float32),
                               jnp.ones((spec.num_agents, spec.action_dim), bool))
     try:
-        restored = flax.serialization.msgpack_restore(data)
-        params = flax.serialization.from_state_dict(template, restored)
-        fits = jax.tree.all(jax.tree.map(lambda t, p: t.shape == np.shape(p), template, params))
-    except (ValueError, TypeError, KeyError):
+        params = flax.serialization.from_state_dict(
+            template, flax.serialization.msgpack_restore(data))
+        fits = all(isinstance(leaf, np.ndarray) and leaf.shape == expected.shape
+                   and leaf.dtype == expected.dtype for leaf, expected in
+                   zip(jax.tree.leaves(params), jax.tree.leaves(template), strict=True))
+    except Exception:  # msgpack and flax raise many kinds for foreign bytes
         fits = False
     if not fits:
         raise CmatError(f"{params_file} does not fit the {config.algo} network of {config_file}")
+    if not all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(params)):
+        raise CmatError(f"{params_file} holds NaN or infinite parameters")
     return Policy(spec, config, saved_seed, env_steps, algorithm,
                   jax.tree.map(jnp.asarray, params))
+
+
+def saved_fields(header: dict[str, Any], header_file: Path) -> tuple[int, int, EnvSpec]:
+    """The seed, env steps and `EnvSpec` a saved policy's header records, each checked for its
+    type and range (CmatError naming the field)."""
+    def integer(value: Any, name: str, least: int | None) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or (
+                least is not None and value < least):
+            bound = "" if least is None else f" >= {least}"
+            raise CmatError(f"{header_file}: {name} must be an integer{bound}, got {value!r}")
+        return int(value)
+
+    spec_fields = header.get("spec")
+    names = {field.name: field for field in dataclasses.fields(EnvSpec)}
+    if not isinstance(spec_fields, dict) or set(spec_fields) != set(names):
+        raise CmatError(f"{header_file}: spec must hold exactly the fields of an EnvSpec "
+                        f"({', '.join(names)})")
+    checked: dict[str, Any] = {}
+    for name, value in spec_fields.items():
+        kind = str(names[name].type)
+        if kind == "int":
+            checked[name] = integer(value, f"spec.{name}", 0 if name == "state_dim" else 1)
+        elif kind == "bool" and isinstance(value, bool):
+            checked[name] = value
+        elif kind == "float" and isinstance(value, (int, float)) and not isinstance(value, bool):
+            checked[name] = float(value)
+        elif kind == "str" and isinstance(value, str):
+            checked[name] = value
+        elif kind.startswith("tuple") and isinstance(value, list) and all(
+                isinstance(item, str) for item in value):
+            checked[name] = tuple(value)
+        else:
+            raise CmatError(f"{header_file}: spec.{name} must be {kind}, got {value!r}")
+    return (integer(header.get("seed"), "seed", None),
+            integer(header.get("env_steps"), "env_steps", 0), EnvSpec(**checked))

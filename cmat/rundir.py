@@ -68,6 +68,9 @@ PER_RUN_PREFIXES = ("entropy_agent_", "grad_norm_", "epochs_run", "env_restarts"
 environments' restarts and non-finite values replaced, cumulative per seed): their columns
 follow COLUMNS in the order the first rows give them."""
 CHECKPOINT_MAGIC = b"CMAT-CHECKPOINT 1\n"
+SAVED_POLICY_HEADER = "policy.json"
+"""The file that marks a directory as a policy saved by `cmat.policy.Policy.save` (`cmat
+export`): one seed's parameters beside the config.yaml of their run, and no checkpoint."""
 
 Row = Mapping[str, str | int | float]
 Checkpoint = str | int
@@ -309,12 +312,26 @@ class RunDir:
         network = (self.checkpoint_header(which) or {}).get("network")
         return network if isinstance(network, dict) else None
 
+    @property
+    def is_saved_policy(self) -> bool:
+        """Whether this directory is a saved policy (`SAVED_POLICY_HEADER`), not a run."""
+        return (self.path / SAVED_POLICY_HEADER).exists()
+
+    def refuse_saved_policy(self) -> None:
+        """CmatError where this directory is a saved policy, for what needs a run's
+        checkpoint (resuming, fine-tuning)."""
+        if self.is_saved_policy:
+            raise CmatError(f"{self.path} is a policy saved by cmat export (one seed's "
+                            f"parameters, no checkpoint): cmat.load_policy, cmat eval and "
+                            f"cmat render read it; training continues from its run directory")
+
     def load_checkpoint(self, which: Checkpoint = "latest") -> tuple[bytes, int]:
         """The trainer bytes and env steps of checkpoint `which` (`checkpoint_file`), checked
-        against its header. CmatError where it is missing (naming those the run keeps) or
-        corrupt."""
+        against its header. CmatError where it is missing (naming those the run keeps, or
+        saying the directory is a saved policy) or corrupt."""
         path = self.checkpoint_file(which)
         if not path.is_file():
+            self.refuse_saved_policy()
             kept = (" (an exported copy: it keeps the run's results, not its checkpoint)"
                     if self.header_path.is_file() else "")
             if which == "latest" or not self.checkpoint_path.is_file():
@@ -503,7 +520,7 @@ def parse_checkpoint(text: str) -> Checkpoint:
     Raises CmatError for anything else."""
     if text in ("latest", "best"):
         return text
-    if text.isdigit():
+    if text.isascii() and text.isdigit():
         return int(text)
     raise CmatError(f"--checkpoint must be latest, best or the env steps of a kept checkpoint, "
                     f"got {text!r}")
@@ -550,6 +567,12 @@ def naming(path: Path) -> Iterator[None]:
         raise OSError(error.errno, error.strerror or str(error), str(path)) from None
 
 
+UMASK = os.umask(0o022)
+os.umask(UMASK)
+"""The process's file-creation mask, read once: files written through a temporary file get the
+permissions a plain `open` would give them (mkstemp's are 0600)."""
+
+
 def atomic_write(path: Path, data: bytes) -> None:
     """Write `data` to `path` through a synced temporary file in the same directory. An
     OSError names `path`; the previous file stays as it was."""
@@ -560,6 +583,7 @@ def atomic_write(path: Path, data: bytes) -> None:
 def atomic_write_named(path: Path, data: bytes) -> None:
     descriptor, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     try:
+        os.fchmod(descriptor, 0o666 & ~UMASK)
         with os.fdopen(descriptor, "wb") as file:
             file.write(data)
             file.flush()

@@ -3,12 +3,15 @@ and the PettingZoo loop of docs/policies.md reaches the optimum of a game the ru
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
 
+import flax.serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,9 +19,10 @@ import pytest
 from test_host_envs import SignalGame
 
 import cmat
+from cmat import rundir
 from cmat.cli import build_trainer, main
 from cmat.errors import CmatError
-from cmat.policy import Policy
+from cmat.policy import Policy, bundle_digest
 from cmat.resolve import load_config
 from cmat.rundir import RunDir
 from cmat.runners.base import eval_keys
@@ -202,49 +206,138 @@ def test_an_exported_policy_acts_as_the_runs_and_carries_one_seed(
     assert "(3 frames, seed 6)" in capsys.readouterr().out
 
 
-def test_a_saved_policy_that_cannot_be_loaded_is_one_error(smax_run: Path, tmp_path: Path) -> None:
-    good = cmat.load_policy(smax_run, seed=5).save(tmp_path / "good")
+def resign(path: Path) -> None:
+    """Record the digest of `path`'s three files as they now are: a forgery, which the
+    digest cannot catch, so the loader's own checks must."""
+    header = json.loads((path / "policy.json").read_text())
+    header["sha256"] = bundle_digest(header, (path / "config.yaml").read_bytes(),
+                                     (path / "policy.msgpack").read_bytes())
+    (path / "policy.json").write_text(json.dumps(header))
 
-    def broken(name: str, edit: Callable[[Path], None]) -> Path:
-        copy = tmp_path / name
+
+def test_a_saved_policy_that_cannot_be_loaded_is_one_error(
+    smax_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    good = cmat.load_policy(smax_run, seed=5).save(tmp_path / "good")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert {file.stat().st_mode & 0o777 for file in good.iterdir()} == {0o666 & ~mask}
+
+    def broken(edit: Callable[[Path], object], forged: bool = False) -> Path:
+        copy = tmp_path / f"broken{len(list(tmp_path.iterdir()))}"
         shutil.copytree(good, copy)
         edit(copy)
+        if forged:
+            resign(copy)
         return copy
 
-    with pytest.raises(CmatError, match="saved policy of seed 5; there is no seed 6"):
-        cmat.load_policy(good, seed=6)
-    with pytest.raises(CmatError, match="checkpoint 'best' is the run directory's choice"):
-        cmat.load_policy(good, checkpoint="best")
+    def header_edit(**fields: object) -> Callable[[Path], object]:
+        def edit(path: Path) -> None:
+            header = json.loads((path / "policy.json").read_text())
+            for name, value in fields.items():
+                section, _, key = name.partition("__")
+                if key:
+                    if value is None:
+                        del header[section][key]
+                    else:
+                        header[section][key] = value
+                else:
+                    header[name] = value
+            (path / "policy.json").write_text(json.dumps(header))
+        return edit
+
+    def params_edit(change: Callable[[np.ndarray], np.ndarray]) -> Callable[[Path], object]:
+        def edit(path: Path) -> None:
+            restored = flax.serialization.msgpack_restore((path / "policy.msgpack").read_bytes())
+            changed = jax.tree.map(lambda leaf: change(np.asarray(leaf)), restored)
+            (path / "policy.msgpack").write_bytes(flax.serialization.msgpack_serialize(changed))
+        return edit
 
     def flip_a_byte(path: Path) -> None:
         data = bytearray((path / "policy.msgpack").read_bytes())
         data[len(data) // 2] ^= 1
         (path / "policy.msgpack").write_bytes(bytes(data))
 
-    with pytest.raises(CmatError, match="differs from the size and SHA-256 its header records"):
-        cmat.load_policy(broken("flipped", flip_a_byte))
-    with pytest.raises(CmatError, match="corrupt saved policy header"):
-        cmat.load_policy(broken("header", lambda p: (p / "policy.json").write_text("{")))
-    with pytest.raises(CmatError, match="format 'cmat-policy 0' is not 'cmat-policy 1'"):
-        cmat.load_policy(broken("format", lambda p: (p / "policy.json").write_text(
-            (p / "policy.json").read_text().replace("cmat-policy 1", "cmat-policy 0"))))
-    with pytest.raises(CmatError, match=r"cannot read .*policy\.msgpack"):
-        cmat.load_policy(broken("missing", lambda p: (p / "policy.msgpack").unlink()))
+    def edit_config(old: str, new: str) -> Callable[[Path], object]:
+        return lambda path: (path / "config.yaml").write_text(
+            (path / "config.yaml").read_text().replace(old, new))
 
-    def other_width(path: Path, header_too: bool) -> None:
-        config = path / "config.yaml"
-        config.write_text(config.read_text().replace("n_embd: 64", "n_embd: 32"))
-        if header_too:
-            header = path / "policy.json"
-            header.write_text(header.read_text().replace('"n_embd": 64', '"n_embd": 32'))
+    not_saved_together = "are not the files saved together"
+    cases: list[tuple[Path, str]] = [
+        (broken(flip_a_byte), not_saved_together),
+        (broken(edit_config("n_embd: 64", "n_embd: 32")), not_saved_together),
+        (broken(header_edit(seed=6)), not_saved_together),
+        (broken(lambda p: (p / "policy.json").write_text("{")), "corrupt saved policy header"),
+        (broken(lambda p: (p / "policy.json").write_text("[1, 2]")),
+         "corrupt saved policy header"),
+        (broken(lambda p: ((p / "policy.json").unlink(), (p / "policy.json").mkdir())),
+         "corrupt saved policy header"),
+        (broken(header_edit(format="cmat-policy 0")),
+         "format 'cmat-policy 0' is not 'cmat-policy 1'"),
+        (broken(lambda p: (p / "policy.msgpack").unlink()), r"cannot read .*policy\.msgpack"),
+        (broken(lambda p: (p / "config.yaml").unlink()), r"cannot read .*config\.yaml"),
+        (broken(header_edit(seed="5"), forged=True), "seed must be an integer, got '5'"),
+        (broken(header_edit(env_steps=-1), forged=True), "env_steps must be an integer >= 0"),
+        (broken(header_edit(spec__obs_dim=None), forged=True),
+         "spec must hold exactly the fields of an EnvSpec"),
+        (broken(header_edit(spec__num_agents=0), forged=True),
+         "spec.num_agents must be an integer >= 1, got 0"),
+        (broken(header_edit(spec__num_agents=2.0), forged=True),
+         "spec.num_agents must be an integer >= 1, got 2.0"),
+        (broken(header_edit(spec__discrete="no"), forged=True),
+         "spec.discrete must be bool, got 'no'"),
+        (broken(header_edit(algo="mappo"), forged=True),
+         "config.yaml is a cmat run on smax:3m, and .*policy.json a mappo policy on smax:3m"),
+        (broken(lambda p: (p / "policy.msgpack").write_bytes(b"\x93\x01\x02\x03"),
+                forged=True), r"policy\.msgpack does not fit the cmat network of"),
+        (broken(params_edit(lambda leaf: leaf.astype(np.int32)), forged=True),
+         r"policy\.msgpack does not fit the cmat network of"),
+        (broken(params_edit(lambda leaf: leaf[..., :1]), forged=True),
+         r"policy\.msgpack does not fit the cmat network of"),
+        (broken(params_edit(lambda leaf: np.full_like(leaf, np.nan)), forged=True),
+         "holds NaN or infinite parameters"),
+    ]
+    for path, message in cases:
+        with pytest.raises(CmatError, match=message):
+            cmat.load_policy(path)
 
-    with pytest.raises(CmatError, match=r"describes another network than the saved parameters "
-                                        r"\(n_embd: 32, saved 64\)"):
-        cmat.load_policy(broken("edited", lambda p: other_width(p, False)))
-    with pytest.raises(CmatError, match=r"policy\.msgpack does not fit the cmat network of"):
-        cmat.load_policy(broken("resized", lambda p: other_width(p, True)))
+    other_env = broken(lambda p: (header_edit(env="smax:2s3z")(p),
+                                  edit_config("env: smax:3m", "env: smax:2s3z")(p)), forged=True)
+    assert cmat.load_policy(other_env).spec.num_agents == 3
+    assert main(["eval", "--run", str(other_env), "--episodes", "1"]) == 2
+    assert ("config.yaml builds an environment with env_id 'smax:2s3z', and the saved "
+            "parameters act on env_id 'smax:3m'") in capsys.readouterr().err
+
+    with pytest.raises(CmatError, match="saved policy of seed 5; there is no seed 6"):
+        cmat.load_policy(good, seed=6)
+    with pytest.raises(CmatError, match="checkpoint 'best' is the run directory's choice"):
+        cmat.load_policy(good, checkpoint="best")
+    for checkpoint in (None, 400.0, True, [1], -3):
+        with pytest.raises(CmatError, match="checkpoint must be 'latest', 'best' or the env"):
+            cmat.load_policy(smax_run, checkpoint=checkpoint)  # type: ignore[arg-type]
+    assert main(["eval", "--run", str(smax_run), "--checkpoint", "\u0664\u0660\u0660"]) == 2
+    assert "--checkpoint must be latest, best or the env steps" in capsys.readouterr().err
+
+    for argv in (["train", "--resume", str(good)], ["train", "--resume", str(good), "--dry-run"],
+                 ["finetune", "--from", str(good), "--mode", "action"]):
+        assert main(argv) == 2, argv
+        assert "is a policy saved by cmat export (one seed's parameters, no checkpoint)" in (
+            capsys.readouterr().err)
+
+    policy = cmat.load_policy(good)
     with pytest.raises(CmatError, match="already exists; a policy is saved to a new directory"):
-        cmat.load_policy(smax_run).save(good)
+        policy.save(good)
+    with pytest.raises(CmatError, match="path must be a path, got int"):
+        policy.save(5)  # type: ignore[arg-type]
+
+    def no_space(path: Path, data: bytes) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(rundir, "atomic_write", no_space)
+    with pytest.raises(CmatError, match=r"cannot write .*policy\.msgpack: No space left"):
+        policy.save(tmp_path / "new" / "deeper" / "policy")
+    assert not (tmp_path / "new").exists()
 
 
 SIGNAL = "pettingzoo:test_host_envs:signal_game"
