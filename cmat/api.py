@@ -355,12 +355,7 @@ def saved_policy(run_dir: RunDir, checkpoint: Checkpoint) -> Policy | None:
     `checkpoint` other than the default, which only a run directory has to choose from."""
     from cmat.policy import load_policy
 
-    if not run_dir.is_saved_policy:
-        return None
-    if checkpoint != "latest":
-        raise CmatError(f"{run_dir.path} is a saved policy, one checkpoint; --checkpoint "
-                        f"chooses among a run directory's")
-    return load_policy(run_dir.path)
+    return load_policy(run_dir.path, checkpoint=checkpoint) if run_dir.is_saved_policy else None
 
 
 MATCHED = "matched"

@@ -17,7 +17,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import hashlib
 import json
 import os
 import shutil
@@ -34,7 +33,7 @@ from cmat.algorithms.base import initial_memories, is_recurrent, with_memory
 from cmat.config import TrainConfig
 from cmat.envs.protocol import EnvSpec
 from cmat.errors import CmatError
-from cmat.rundir import SAVED_POLICY_HEADER, Checkpoint, RunDir
+from cmat.rundir import SAVED_POLICY_HEADER, Checkpoint, RunDir, sha256
 
 if TYPE_CHECKING:
     from cmat.algorithms.base import Algorithm
@@ -334,7 +333,7 @@ def bundle_digest(header: dict[str, Any], config_text: bytes, params: bytes) -> 
     (canonical JSON), `config.yaml` and `policy.msgpack`. An edit to any one of them, or parts
     of two saved policies put together, no longer matches the digest `policy.json` records."""
     fields = json.dumps({k: v for k, v in header.items() if k != "sha256"}, sort_keys=True)
-    return hashlib.sha256(b"\0".join((fields.encode(), config_text, params))).hexdigest()
+    return sha256(b"\0".join((fields.encode(), config_text, params)))
 
 
 def load_saved(path: Path, seed: int | None, checkpoint: Checkpoint) -> Policy:
